@@ -1,0 +1,60 @@
+"""ament_python package lgs_wfs_ros: installable by colcon on a ROS 2 Jazzy system and by pip in a venv."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "lgs_wfs_ros"
+
+NODES = {
+    "simulator_node": "lgs_wfs_ros.ros.simulator_node:main",
+    "centroider_node": "lgs_wfs_ros.ros.centroider_node:main",
+    "recorder_node": "lgs_wfs_ros.ros.recorder_node:main",
+    "player_node": "lgs_wfs_ros.ros.player_node:main",
+}
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={package_name: ["data/*.npz", "data/*.json", "config/*.xml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
+        ("share/" + package_name + "/models", glob("models/*.onnx") + glob("models/*.json")),
+    ],
+    python_requires=">=3.10",
+    # Ranges here; the exact versions CI tests with are pinned in constraints.txt.
+    install_requires=[
+        "setuptools",
+        "numpy>=1.26,<3",
+        "scipy>=1.11,<2",
+        "aotools>=1.0.7,<2",
+        "onnxruntime>=1.17,<2",
+        "onnx>=1.15,<2",
+        "mcap>=1.1,<2",
+        "mcap-ros2-support>=0.5,<1",
+        "matplotlib>=3.7,<4",
+        "tqdm>=4.60,<5",
+        "PyYAML>=6,<7",
+    ],
+    extras_require={
+        # ROS 2 Jazzy from PyPI wheels, for a plain venv; leave it out on a system ROS install.
+        "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6"],
+        "train": ["torch==2.13.0"],
+        "test": ["pytest>=8,<10"],
+    },
+    zip_safe=True,
+    maintainer="lgs_wfs_ros developers",
+    maintainer_email="lgs-wfs-ros@example.org",
+    description="Centroiding elongated sodium laser-guide-star spots on Shack-Hartmann "
+                "wavefront sensors: simulator, CoG/CMF/ANN centroiders, ROS 2 nodes, MCAP bags.",
+    license="BSD-3-Clause",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [f"{name} = {target}" for name, target in NODES.items()]
+        + ["lgs-wfs = lgs_wfs_ros.cli:main"],
+    },
+)
