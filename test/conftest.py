@@ -1,0 +1,82 @@
+"""Shared fixtures: ROS isolation and a per-test rclpy context with a spinning executor.
+
+Every test run gets its own ROS_DOMAIN_ID (unless the caller set one, as .ci/run does) and
+localhost-only discovery, so parallel runs on one machine never see each other's nodes.
+"""
+
+import os
+import threading
+
+import pytest
+
+os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "1")
+
+from lgs_wfs_ros.ros import environment  # noqa: E402  (no rclpy import)
+
+environment.configure()
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "slow: end-to-end or long runs (deselect with -m 'not slow')")
+    config.addinivalue_line("markers", "ros: needs rclpy")
+
+
+class RosHarness:
+    """An isolated rclpy context, an executor spinning in a thread, and the nodes added to it."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.nodes = []
+        self._thread = threading.Thread(target=self._spin, name="ros-spin", daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        from rclpy.executors import ExternalShutdownException
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def add(self, node):
+        """Add a node (built with ``context=harness.context``) to the executor; returns it."""
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def shutdown(self):
+        """The order that avoids 'terminate called without an active exception'."""
+        self.executor.shutdown()
+        self._thread.join(timeout=10)
+        for node in self.nodes:
+            node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def ros():
+    """Yield a :class:`RosHarness`; shut it down cleanly afterwards."""
+    pytest.importorskip("rclpy", reason="ROS 2 (rclpy) is not installed: pip install '.[ros]'")
+    harness = RosHarness()
+    try:
+        yield harness
+    finally:
+        harness.shutdown()
+
+
+def wait_for(predicate, timeout=10.0, interval=0.01):
+    """Poll ``predicate`` until it is true or ``timeout`` seconds pass; return its last value."""
+    import time
+    deadline = time.monotonic() + timeout
+    value = predicate()
+    while not value and time.monotonic() < deadline:
+        time.sleep(interval)
+        value = predicate()
+    return value
