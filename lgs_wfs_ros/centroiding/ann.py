@@ -1,0 +1,197 @@
+"""ANN centroider: runs an ONNX model with onnxruntime (one intra-op thread) on the stack.
+
+Model metadata contract (ONNX ``metadata_props``, every value JSON-encoded; a bare string
+is accepted too):
+
+==========================  =================================================================
+``lgs_wfs.pixels``          int, pixels per side the model takes (required)
+``lgs_wfs.detector``        "polar" | "cartesian" | "any" (default "any")
+``lgs_wfs.input_norm``      "sum" (each subaperture divided by its total) | "none" (default "sum")
+``lgs_wfs.output_scale``    float: slope px = output * scale (default 1)
+``lgs_wfs.output_frame``    "local" (along e / across e) | "detector" (default "detector")
+``lgs_wfs.conditioning``    "none" | "e" (second input ``(batch, 2)`` = e in detector axes) |
+                            "e_r" (``(batch, 3)`` = (ex, ey, r_m / 15)) (default "none")
+``lgs_wfs.conditioning_input``  name of that second input (default "e")
+``lgs_wfs.input_name``      name of the pixel input (default: the first input)
+``lgs_wfs.training``        free-form JSON, reported by ``describe()``
+==========================  =================================================================
+
+Pixel input: float32 ``(batch, p*p)``, row-major subaperture pixels (block pixel axes: the
+local frame on a polar detector). Output: ``(batch, 2)``.
+
+Model lookup (:func:`resolve_model`): an existing path; else a name (with or without
+``.onnx``) in the repository's ``models/``, then ``sys.prefix/share/lgs_wfs_ros/models``,
+then the directories in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..optics import geometry
+from .base import Centroider, check_options
+
+DEFAULT_MODEL = "ann_pupil"
+META = "lgs_wfs."
+
+
+def model_dirs() -> list[Path]:
+    """Directories searched for model names, in order."""
+    dirs = [Path(__file__).resolve().parents[2] / "models",
+            Path(sys.prefix) / "share" / "lgs_wfs_ros" / "models"]
+    env = os.environ.get("LGS_WFS_MODELS", "")
+    dirs += [Path(d) for d in env.split(os.pathsep) if d]
+    return dirs
+
+
+def resolve_model(model: str | os.PathLike) -> Path:
+    """Path of a model given as a path or a name. ``ValueError`` if it cannot be found."""
+    if not isinstance(model, (str, os.PathLike)) or not str(model):
+        raise ValueError(f"ann: model must be a file path or a model name, got {model!r}")
+    p = Path(model).expanduser()
+    if p.is_file():
+        return p
+    names = [p.name] if p.suffix == ".onnx" else [p.name, p.name + ".onnx"]
+    if len(p.parts) == 1:
+        for d in model_dirs():
+            for name in names:
+                if (d / name).is_file():
+                    return d / name
+    searched = ", ".join(str(d) for d in model_dirs())
+    raise ValueError(f"ann: model {str(model)!r} not found (not a file; searched {searched} "
+                     f"and $LGS_WFS_MODELS)")
+
+
+def read_metadata(meta_map: dict) -> dict:
+    """Parse the ``lgs_wfs.*`` entries of an ONNX custom metadata map, with defaults."""
+    raw = {}
+    for k, v in meta_map.items():
+        if k.startswith(META):
+            try:
+                raw[k[len(META):]] = json.loads(v)
+            except (json.JSONDecodeError, TypeError):
+                raw[k[len(META):]] = v
+    md = {"detector": "any", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
+          "conditioning": "none", "conditioning_input": "e", "input_name": None, "training": None}
+    md.update(raw)
+    if "pixels" not in raw:
+        raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
+    checks = [("detector", ("polar", "cartesian", "any")), ("input_norm", ("sum", "none")),
+              ("output_frame", ("local", "detector")), ("conditioning", ("none", "e", "e_r"))]
+    for key, allowed in checks:
+        if md[key] not in allowed:
+            raise ValueError(f"ann: metadata lgs_wfs.{key} must be one of {list(allowed)}, got {md[key]!r}")
+    try:
+        md["pixels"] = int(md["pixels"])
+        md["output_scale"] = float(md["output_scale"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"ann: bad metadata lgs_wfs.pixels/output_scale: {exc}") from exc
+    if not np.isfinite(md["output_scale"]):
+        raise ValueError("ann: metadata lgs_wfs.output_scale must be finite")
+    return md
+
+
+def open_session(path: Path):
+    """onnxruntime session with one intra-op and one inter-op thread (CPU)."""
+    import onnxruntime as ort
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ValueError(f"ann: cannot load model {str(path)!r}: {exc}") from exc
+
+
+class ANN(Centroider):
+    """Neural-network centroider.
+
+    Options:
+        model: path or name (default "ann_pupil"), see :func:`resolve_model`.
+    """
+
+    name = "ann"
+    _allowed = ("model",)
+
+    def __init__(self, sensor, **options):
+        check_options(self.name, options, self._allowed)
+        options.setdefault("model", DEFAULT_MODEL)
+        super().__init__(sensor, **options)
+        self.path = resolve_model(options["model"])
+        self.session = open_session(self.path)
+        self.meta = read_metadata(self.session.get_modelmeta().custom_metadata_map)
+        md = self.meta
+        if md["pixels"] != self.p:
+            raise ValueError(f"ann: model {self.path.name} takes {md['pixels']} x {md['pixels']} "
+                             f"pixels, the sensor has {self.p} x {self.p}")
+        if md["detector"] not in ("any", sensor.detector):
+            raise ValueError(f"ann: model {self.path.name} is for a {md['detector']} detector, "
+                             f"the sensor is {sensor.detector}")
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        first = self.session.get_inputs()[0].name
+        self.input_name = md["input_name"] or first
+        if self.input_name not in inputs:
+            raise ValueError(f"ann: model has no input {self.input_name!r} (inputs: {list(inputs)})")
+        _check_width(inputs[self.input_name], self.p * self.p, "pixel input", self.n)
+        self.cond = None
+        if md["conditioning"] != "none":
+            cname = md["conditioning_input"]
+            if cname not in inputs:
+                raise ValueError(f"ann: conditioning {md['conditioning']!r} needs an input named "
+                                 f"{cname!r}; the model has {list(inputs)}")
+            e = np.asarray(self.layout.e, dtype=np.float32)
+            if md["conditioning"] == "e_r":
+                e = np.concatenate([e, (np.asarray(self.layout.r_m) / 15.0)[:, None]], axis=1)
+            _check_width(inputs[cname], e.shape[1], "conditioning input", self.n)
+            self.cond = (cname, np.ascontiguousarray(e, dtype=np.float32))
+        elif len(inputs) > 1:
+            raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
+        self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
+
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """Raw model output ``(n, 2)`` float64 for ``(n, p*p)`` float32 inputs."""
+        feed = {self.input_name: x}
+        if self.cond is not None:
+            feed[self.cond[0]] = self.cond[1]
+        out = self.session.run(None, feed)[0]
+        out = np.asarray(out, dtype=np.float64)
+        if out.shape != (x.shape[0], 2):
+            raise ValueError(f"ann: model output has shape {out.shape}, expected {(x.shape[0], 2)}")
+        return out
+
+    def _centroid_pixels(self, stack, total, ok):
+        x = stack.reshape(self.n, -1).astype(np.float32, copy=False)
+        if self.meta["input_norm"] == "sum":
+            scale = np.where(ok, 1.0 / np.where(ok, total, 1.0), 0.0).astype(np.float32)
+            x = x * scale[:, None]
+        out = self.run(np.ascontiguousarray(x)) * self.meta["output_scale"]
+        if self.meta["output_frame"] == "local":
+            out = geometry.local_to_detector(out, self.layout.e)
+        return self.to_pixel_axes(out)
+
+    def describe(self):
+        d = super().describe()
+        d["model_path"] = str(self.path)
+        d["model_sha256"] = self._sha256
+        d["model_metadata"] = {k: v for k, v in self.meta.items()}
+        return d
+
+
+def _check_width(arg, width: int, label: str, n: int) -> None:
+    """An input must be ``(batch, width)`` with a free batch (or exactly ``n``)."""
+    shape = list(arg.shape)
+    if len(shape) != 2:
+        raise ValueError(f"ann: model {label} {arg.name!r} must be 2-D (batch, {width}), has shape {shape}")
+    if isinstance(shape[1], int) and shape[1] != width:
+        what = " (pixel-count mismatch)" if label == "pixel input" else ""
+        raise ValueError(f"ann: model {label} {arg.name!r} takes {shape[1]} values, expected {width}{what}")
+    if isinstance(shape[0], int) and shape[0] != n:
+        raise ValueError(f"ann: model {label} {arg.name!r} has a fixed batch of {shape[0]}, "
+                         f"the sensor has {n} subapertures; export it with a dynamic batch axis")

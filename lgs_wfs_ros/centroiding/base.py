@@ -1,0 +1,203 @@
+"""The common centroider interface: input checks, bad-subaperture masking, axes.
+
+Every centroider takes one detector frame ``(G*p, G*p)`` or a subaperture stack
+``(n_valid, p, p)`` (any real dtype) and returns ``(n_valid, 2)`` float64 slopes in
+pixels, detector axes (x = column, y = row), measured from the subaperture centre
+``((p-1)/2, (p-1)/2)`` = (7.5, 7.5) for 16 pixels (docs/conventions.md, section 2).
+
+A subaperture whose pixels contain NaN/inf, or whose total is zero or negative, gets a
+NaN slope; the other subapertures of the frame are unaffected. A wrong shape raises
+``ValueError``.
+
+Polar detector: each block is sampled in its local frame (local x along the elongation
+vector ``e``), so algorithms compute in block pixel axes and :meth:`Centroider.to_detector`
+rotates the result back with :func:`lgs_wfs_ros.optics.geometry.local_to_detector`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..optics import geometry
+from ..sensor import Sensor
+
+
+class Centroider:
+    """Base class. Subclasses implement :meth:`_centroid_pixels`.
+
+    Attributes:
+        name: the registry name ("cog", "cmf", ...).
+        sensor: the :class:`Sensor`.
+        layout: its :class:`geometry.Layout`.
+        options: the options dict, as validated (JSON-able).
+    """
+
+    name = "base"
+
+    def __init__(self, sensor: Sensor, **options):
+        if not isinstance(sensor, Sensor):
+            raise ValueError(f"sensor must be a Sensor, got {type(sensor).__name__}")
+        self.sensor = sensor
+        self.layout = geometry.layout(sensor)
+        self.options = dict(options)
+
+    # -- geometry helpers -------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of valid subapertures."""
+        return self.layout.n_valid
+
+    @property
+    def p(self) -> int:
+        """Pixels per subaperture side."""
+        return self.sensor.pixels
+
+    @property
+    def centre(self) -> float:
+        """Pixel coordinate of the subaperture centre, ``(p - 1) / 2``."""
+        return (self.sensor.pixels - 1) / 2.0
+
+    @property
+    def polar(self) -> bool:
+        return self.sensor.detector == "polar"
+
+    @property
+    def e_pixel(self) -> np.ndarray:
+        """``(n, 2)`` elongation unit vector in the block's pixel axes.
+
+        ``(1, 0)`` everywhere on a polar detector (local frame), ``layout.e`` on a
+        cartesian one.
+        """
+        if self.polar:
+            e = np.zeros((self.n, 2))
+            e[:, 0] = 1.0
+            return e
+        return np.asarray(self.layout.e, dtype=float)
+
+    def to_detector(self, v: np.ndarray) -> np.ndarray:
+        """``(..., n, 2)`` vectors in block pixel axes -> detector axes."""
+        if self.polar:
+            return geometry.local_to_detector(v, self.layout.e)
+        return v
+
+    def to_pixel_axes(self, v: np.ndarray) -> np.ndarray:
+        """``(..., n, 2)`` detector-axes vectors -> block pixel axes."""
+        if self.polar:
+            return geometry.detector_to_local(v, self.layout.e)
+        return v
+
+    # -- input ----------------------------------------------------------------------
+    def as_stack(self, data) -> np.ndarray:
+        """Frame or stack -> ``(n, p, p)`` array (a view or copy, never the input mutated).
+
+        Raises:
+            ValueError: not a frame of this sensor nor an ``(n_valid, p, p)`` stack.
+        """
+        data = np.asarray(data)
+        if data.dtype.kind not in "uif":
+            raise ValueError(f"data must be a real numeric array, got dtype {data.dtype}")
+        n, p = self.n, self.p
+        if data.shape == self.sensor.frame_shape:
+            return geometry.frame_to_stack(data, self.layout)
+        if data.shape == (n, p, p):
+            return data
+        raise ValueError(
+            f"data has shape {data.shape}; expected a frame {self.sensor.frame_shape} "
+            f"or a subaperture stack {(n, p, p)}")
+
+    def prepare(self, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame or stack -> (clean float stack, total, ok).
+
+        Returns:
+            stack: ``(n, p, p)`` float32 (float64 if the input was float64), a new array;
+                bad subapertures are zeroed so they cannot poison vectorised maths.
+            total: ``(n,)`` float64 sum of each subaperture (counts).
+            ok: ``(n,)`` bool, finite pixels and total > 0.
+        """
+        stack = self.as_stack(data)
+        dtype = np.float64 if stack.dtype == np.float64 else np.float32
+        stack = stack.astype(dtype, copy=True)
+        total = stack.reshape(self.n, -1).sum(axis=1, dtype=np.float64)
+        ok = np.isfinite(total) & (total > 0)
+        if not ok.all():
+            stack[~ok] = 0
+        return stack, total, ok
+
+    # -- public API -------------------------------------------------------------------
+    def centroid(self, data) -> np.ndarray:
+        """Slopes of one frame.
+
+        Args:
+            data: ``(G*p, G*p)`` frame or ``(n_valid, p, p)`` stack, counts, any real dtype.
+
+        Returns:
+            ``(n_valid, 2)`` float64 slopes (sx, sy), pixels, detector axes; NaN rows for
+            bad subapertures.
+        """
+        stack, total, ok = self.prepare(data)
+        local = self._centroid_pixels(stack, total, ok)
+        out = np.asarray(self.to_detector(local), dtype=np.float64)
+        out[~ok] = np.nan
+        return out
+
+    def _centroid_pixels(self, stack, total, ok) -> np.ndarray:
+        """``(n, 2)`` slopes in block pixel axes. Bad rows may hold anything."""
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        """Forget any state kept between frames (no-op for stateless algorithms)."""
+
+    def describe(self) -> dict:
+        """JSON-able description for the node's ``centroider`` topic."""
+        return {"algorithm": self.name, "options": _jsonable(self.options),
+                "detector": self.sensor.detector, "pixels": self.sensor.pixels,
+                "n_valid": self.n}
+
+
+def _jsonable(x):
+    """Options -> JSON-able values (arrays become lists, paths strings)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, (str, int, float, bool)) or x is None:
+        return x
+    return str(x)
+
+
+def check_options(name: str, options: dict, allowed) -> None:
+    """Raise ``ValueError`` naming any option the algorithm does not take."""
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ValueError(f"{name}: unknown option(s) {unknown}; allowed: {sorted(allowed)}")
+
+
+def number(name: str, value, *, minimum=None, strict=False, integer=False) -> float:
+    """Validate a scalar option, returning it as float (or int)."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    ok = ok and np.isfinite(value)
+    if ok and integer:
+        ok = float(value).is_integer()
+    if ok and minimum is not None:
+        ok = value > minimum if strict else value >= minimum
+    if not ok:
+        kind = "an integer" if integer else "a finite number"
+        bound = "" if minimum is None else f" {'>' if strict else '>='} {minimum}"
+        raise ValueError(f"option {name} must be {kind}{bound}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def choice(name: str, value, allowed) -> str:
+    if value not in allowed:
+        raise ValueError(f"option {name} must be one of {list(allowed)}, got {value!r}")
+    return value
+
+
+def pixel_coords(p: int, centre: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(p*p,)`` x (column) and y (row) offsets of each pixel from ``centre``, row-major."""
+    y, x = np.indices((p, p), dtype=float)
+    return (x - centre).ravel(), (y - centre).ravel()

@@ -1,0 +1,147 @@
+"""Correlation centroiding against a reference image, with a 3 x 3 parabolic peak fit.
+
+For each subaperture the image ``x`` (background removed) is cross-correlated with its
+reference ``r`` by FFT, ``c(tau) = sum_u x(u + tau) r(u)`` (zero-padded by ``padding``:
+2 = linear correlation, 1 = circular), so the peak sits at the displacement of the image
+relative to the reference. The peak is located to a whole lag by the maximum, then
+refined by two 1-D parabolas through the 3 x 3 neighbourhood (``peak="parabola"``), or
+by a (thresholded) centre of gravity of the whole map (``peak="cog"``, aotools' method).
+
+The reference comes from :class:`.reference.ReferenceSource` (the CMF's sources:
+"history", "static" with ``set_reference`` — e.g. ``cmf.reference`` — or "model") and is
+taken to sit at the subaperture centre (see :mod:`.reference`).
+
+aotools' ``correlation_centroid`` reports the fftshifted map's CoG from index 0, whose
+zero lag is at ``p/2`` (8 for 16 px) whatever the padding: ``ours = aotools - p/2``.
+It also subtracts each image's and the reference's minimum first (``subtract_min=True``
+here) and takes ``abs`` of the inverse FFT (identical for non-negative images).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Centroider, check_options, choice, number
+from .cmf import CMF
+from .reference import ReferenceSource
+
+
+class Correlation(Centroider):
+    """Correlation centroider.
+
+    Options:
+        reference, history, include_current, update_period, sodium_fwhm_m: as :class:`CMF`
+            (default reference "history", 5 frames, the paper's CMF setting).
+        peak: "parabola" (default, 3 x 3 fit) | "cog" (CoG of the map, aotools).
+        threshold: for ``peak="cog"``: fraction of the map maximum subtracted (aotools), 0.
+        padding: 1 (circular) or 2 (linear, default).
+        subtract_min: subtract each image's and reference's minimum first (False).
+        background: counts per pixel removed from images and reference (sensor's).
+    """
+
+    name = "corr"
+    _allowed = ("reference", "history", "include_current", "update_period", "sodium_fwhm_m",
+                "peak", "threshold", "padding", "subtract_min", "background")
+
+    def __init__(self, sensor, **options):
+        check_options(self.name, options, self._allowed)
+        o = {"reference": "history", "history": 5, "include_current": True, "update_period": 1,
+             "sodium_fwhm_m": 10e3, "peak": "parabola", "threshold": 0.0, "padding": 2,
+             "subtract_min": False, "background": float(sensor.background_e)}
+        o.update(options)
+        super().__init__(sensor, **o)
+        self.peak = choice("peak", o["peak"], ("parabola", "cog"))
+        self.threshold = number("threshold", o["threshold"], minimum=0)
+        if self.threshold >= 1:
+            raise ValueError(f"option threshold must be in [0, 1), got {self.threshold}")
+        self.padding = int(choice("padding", o["padding"], (1, 2)))
+        if not isinstance(o["subtract_min"], (bool, np.bool_)):
+            raise ValueError(f"option subtract_min must be true or false, got {o['subtract_min']!r}")
+        self.subtract_min = bool(o["subtract_min"])
+        self.background = number("background", o["background"], minimum=0)
+        model = None
+        if o["reference"] == "model":
+            helper = CMF(sensor, reference="history")
+            model = helper.model_reference(number("sodium_fwhm_m", o["sodium_fwhm_m"], minimum=0))
+        self.ref = ReferenceSource(self.n, self.p, o["reference"], o["history"],
+                                   o["include_current"], o["update_period"], model)
+        self._ref_version = -1
+
+    def set_reference(self, images) -> None:
+        """Install a static reference ``(n_valid, p, p)`` counts, block pixel axes."""
+        self.ref.set(images)
+
+    @property
+    def reference(self):
+        return None if self.ref.images is None else self.ref.images.copy()
+
+    def reset(self) -> None:
+        self.ref.reset()
+        self._ref_version = -1
+
+    def _prep(self, img):
+        img = img - self.background if self.background else img
+        if self.subtract_min:
+            img = img - img.min(axis=(1, 2), keepdims=True)
+        return img
+
+    def _ref_fft(self):
+        if self._ref_version != self.ref.version:
+            size = (self.p * self.padding,) * 2
+            ref = self._prep(np.asarray(self.ref.images, dtype=float))
+            self._ref_ok = np.isfinite(ref).all(axis=(1, 2)) & (ref.sum(axis=(1, 2)) > 0)
+            self._fr = np.conj(np.fft.rfft2(np.where(self._ref_ok[:, None, None], ref, 0.0), s=size))
+            self._ref_version = self.ref.version
+        return self._fr
+
+    def correlation_map(self, stack) -> np.ndarray:
+        """``(n, P, P)`` fftshifted correlation maps, ``P = p * padding``; zero lag at ``P/2``."""
+        size = (self.p * self.padding,) * 2
+        fx = np.fft.rfft2(self._prep(np.asarray(stack, dtype=float)), s=size)
+        c = np.fft.irfft2(fx * self._ref_fft(), s=size)
+        return np.fft.fftshift(c, axes=(1, 2))
+
+    def _centroid_pixels(self, stack, total, ok):
+        self.ref.observe(stack, ok)
+        c = self.correlation_map(stack)
+        n, big, _ = c.shape
+        if self.peak == "cog":
+            out = _map_cog(c, self.threshold) - big / 2
+        else:
+            out = _parabola_peak(c) - big / 2
+        out[~self._ref_ok] = np.nan
+        return out
+
+
+def _map_cog(c: np.ndarray, threshold: float) -> np.ndarray:
+    """``(n, 2)`` (x, y) CoG of ``(n, P, P)`` maps from index 0, aotools' thresholding."""
+    if threshold > 0:
+        t = threshold * c.max(axis=(1, 2), keepdims=True)
+        c = np.where(c > t, c - t, 0.0)
+    big = c.shape[-1]
+    idx = np.arange(big, dtype=float)
+    tot = c.sum(axis=(1, 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (c.sum(axis=1) @ idx) / tot
+        y = (c.sum(axis=2) @ idx) / tot
+    return np.stack([x, y], axis=1)
+
+
+def _parabola_peak(c: np.ndarray) -> np.ndarray:
+    """``(n, 2)`` (x, y) sub-lag peak positions: argmax + 1-D parabolas on the 3 x 3 block."""
+    n, big, _ = c.shape
+    flat = c.reshape(n, -1).argmax(axis=1)
+    iy, ix = np.divmod(flat, big)
+    rows = np.arange(n)
+
+    def at(dy, dx):
+        return c[rows, (iy + dy) % big, (ix + dx) % big]
+
+    c0 = at(0, 0)
+    out = np.empty((n, 2))
+    for axis, (lo, hi) in enumerate(((at(0, -1), at(0, 1)), (at(-1, 0), at(1, 0)))):
+        denom = lo - 2 * c0 + hi
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.where(denom < 0, 0.5 * (lo - hi) / denom, 0.0)
+        out[:, axis] = (ix, iy)[axis] + np.clip(d, -0.5, 0.5)
+    return out
