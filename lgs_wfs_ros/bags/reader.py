@@ -12,6 +12,7 @@ truncation, skipping corrupt chunks whose length is intact; ``problems`` lists w
 skipped. :func:`recover` uses that to copy a damaged bag into a complete one.
 """
 
+import mmap
 import os
 import struct
 import zlib
@@ -77,10 +78,18 @@ class BagReader:
         except OSError as err:
             raise BagError(f"{self.path}: cannot open: {err.strerror}") from None
         self.size = os.fstat(self._f.fileno()).st_size
+        self._mm = None
         try:
+            if self.size < 8:
+                raise self._err(f"not an MCAP file (only {self.size} bytes)")
+            try:
+                self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
+            except (OSError, ValueError) as err:
+                raise self._err(f"cannot map the file: {err}") from None
+            self._buf = memoryview(self._mm)
             self._open()
         except BagError:
-            self._f.close()
+            self.close()
             raise
 
     # -- opening ----------------------------------------------------------------------
@@ -88,7 +97,7 @@ class BagReader:
         return BagError(f"{self.path}: {what}")
 
     def _open(self):
-        if self._f.read(8) != fmt.MAGIC:
+        if bytes(self._buf[:8]) != fmt.MAGIC:
             raise self._err("not an MCAP file (bad magic bytes)")
         try:
             op, body = self._read_record_at(8)
@@ -117,24 +126,18 @@ class BagReader:
 
     def _read_record_at(self, offset):
         """(opcode, body bytes) of the record at a file offset; _Truncated past the end."""
-        self._f.seek(offset)
-        head = self._f.read(9)
-        if len(head) < 9:
+        if offset + 9 > self.size:
             raise _Truncated(f"file ends inside a record header at byte {offset}")
-        op, length = struct.unpack("<BQ", head)
+        op, length = struct.unpack_from("<BQ", self._buf, offset)
         if offset + 9 + length > self.size:
             raise _Truncated(f"record at byte {offset} (opcode {op:#04x}, {length} bytes) runs past "
                              f"the end of the file ({self.size} bytes)")
-        body = self._f.read(length)
-        if len(body) != length:
-            raise _Truncated(f"short read at byte {offset}")
-        return op, body
+        return op, self._buf[offset + 9:offset + 9 + length]
 
     def _read_summary(self):
         if self.size < self._data_start + _TRAILER:
             raise _Truncated("file too short for an MCAP footer")
-        self._f.seek(self.size - _TRAILER)
-        tail = self._f.read(_TRAILER)
+        tail = bytes(self._buf[self.size - _TRAILER:])
         if tail[-8:] != fmt.MAGIC or tail[0] != fmt.OP_FOOTER:
             raise _Truncated("no footer at the end of the file")
         _, length, sstart, ostart, crc = struct.unpack("<BQQQI", tail[:_FOOTER_LEN])
@@ -146,8 +149,7 @@ class BagReader:
             return None            # a valid file without summary: scan
         if not self._data_start <= sstart <= footer_at:
             raise _Corrupt("footer points outside the file")
-        self._f.seek(sstart)
-        blob = self._f.read(footer_at - sstart)
+        blob = self._buf[sstart:footer_at]
         if crc:
             calc = zlib.crc32(tail[:_FOOTER_LEN - 4], zlib.crc32(blob))
             if calc != crc:
@@ -196,11 +198,9 @@ class BagReader:
         offset = self._data_start
         while offset < self.size:
             try:
-                self._f.seek(offset)
-                head = self._f.read(9)
-                if len(head) < 9:
+                if offset + 9 > self.size:
                     raise _Truncated(f"file ends inside a record header at byte {offset}")
-                op, length = struct.unpack("<BQ", head)
+                op, length = struct.unpack_from("<BQ", self._buf, offset)
                 nxt = offset + 9 + length
                 if nxt > self.size:
                     raise _Truncated(f"record at byte {offset} (opcode {op:#04x}) needs {length} bytes, "
@@ -214,9 +214,7 @@ class BagReader:
                 if op not in (fmt.OP_SCHEMA, fmt.OP_CHANNEL, fmt.OP_MESSAGE, fmt.OP_CHUNK, fmt.OP_METADATA):
                     offset = nxt
                     continue
-                body = self._f.read(length)
-                if len(body) != length:
-                    raise _Truncated(f"short read at byte {offset}")
+                body = self._buf[offset + 9:nxt]
                 try:
                     items = list(self._parse(op, body))
                 except (_Corrupt, ValueError, struct.error, UnicodeDecodeError) as err:
@@ -427,6 +425,14 @@ class BagReader:
         return out
 
     def close(self):
+        """Release the file. Arrays from images() are copies and stay valid."""
+        self._buf = None
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:      # a caller still holds a view; the map closes with it
+                pass
+            self._mm = None
         self._f.close()
 
     def __enter__(self):

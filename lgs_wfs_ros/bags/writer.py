@@ -8,11 +8,18 @@ its MessageIndex records), at close the ``rosbag2`` Metadata record, DataEnd, th
 Every write to disk is a whole record group, so a process killed at any moment leaves a file
 whose complete chunks are all readable (:func:`lgs_wfs_ros.bags.recover`). An ``OSError``
 (disk full, RLIMIT_FSIZE, I/O error) truncates the file back to the end of its last complete
-group, appends a small valid ending when it fits, closes it and raises :class:`BagWriteError`.
+group, appends a small valid ending (DataEnd, Footer without summary) when it fits, closes it
+and raises :class:`BagWriteError`.
+
+With ``background=True`` chunks are compressed and written by one worker thread (zstd, lz4
+and file writes release the GIL), so the caller only builds chunks in memory; at most
+``queue_chunks`` full chunks wait (then ``write`` blocks: back-pressure, bounded memory). A
+worker error is raised by the next ``write``/``flush``/``close``.
 """
 
 import os
-import time
+import queue
+import threading
 import zlib
 from pathlib import Path
 
@@ -42,24 +49,32 @@ def _compressor(kind, level, threads):
     raise ValueError(f"compression must be 'zstd', 'lz4' or None, not {kind!r}")
 
 
+class _Failed(Exception):
+    """Internal: the file was closed after an OSError; args = (strerror, errno, state)."""
+
+
 class BagWriter:
     """Write an MCAP bag in rosbag2's layout.
 
     path: output file (``.mcap``); overwrite: replace an existing file (else BagExistsError);
     chunk_size: uncompressed bytes per chunk (a crash loses at most the open chunk);
     compression: "zstd", "lz4" or None; compression_level: codec level (zstd default 3,
-    lz4 default 0); threads: zstd worker threads (0 = compress in the calling thread);
-    crc: CRC32 of each chunk's records (detects corruption, ~4 GB/s); rosbag2_metadata: write
-    the ``rosbag2`` metadata record at close; fsync: fsync the file at close.
+    lz4 default 0); threads: zstd's own worker threads (0: none); crc: CRC32 of each chunk's
+    records (detects corruption; ~4 GB/s); rosbag2_metadata: write the ``rosbag2`` metadata
+    record at close; fsync: fsync the file at close; background: compress and write chunks
+    in a worker thread; queue_chunks: full chunks allowed to wait for that worker.
 
-    Use as a context manager, or call :meth:`close`. Not thread safe: one writer per thread.
+    Use as a context manager, or call :meth:`close`. Call from one thread.
     """
 
     def __init__(self, path, *, overwrite=False, chunk_size=4 * 1024 * 1024, compression="zstd",
-                 compression_level=None, threads=0, crc=True, rosbag2_metadata=True, fsync=False):
+                 compression_level=None, threads=0, crc=True, rosbag2_metadata=True, fsync=False,
+                 background=False, queue_chunks=2):
         self.path = Path(path)
         if int(chunk_size) <= 0:
             raise ValueError("chunk_size must be positive")
+        if int(queue_chunks) < 1:
+            raise ValueError("queue_chunks must be >= 1")
         self._chunk_size = int(chunk_size)
         self._comp_name, self._compress = _compressor(compression, compression_level, threads)
         self._crc = bool(crc)
@@ -67,20 +82,21 @@ class BagWriter:
         self._fsync = bool(fsync)
         if self.path.is_dir():
             raise BagError(f"{self.path} is a directory, not a bag file")
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
         try:
-            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL), 0o644)
+            self._fd = os.open(self.path, flags, 0o644)
         except FileExistsError:
             raise BagExistsError(f"{self.path} exists; refusing to overwrite it (pass overwrite=True)") from None
         except OSError as err:
             raise BagError(f"cannot create {self.path}: {err.strerror}") from None
-        self._offset = 0          # bytes in the file
-        self._good = 0            # end of the last complete record group
+        self._offset = 0          # bytes in the file (worker side)
         self._closed = False
-        self._failed = None
+        self._failed = None       # _Failed once the file was closed after an error
+        self._reported = False    # that failure was raised to the caller
         self._schemas = {}        # type -> schema id
         self._topics = {}         # topic -> dict(id, type, qos)
-        self._counts = {}         # channel id -> messages written (incl. open chunk)
-        self._saved = 0           # messages in complete chunks on disk
+        self._counts = {}         # channel id -> messages accepted
+        self._saved = 0           # messages in complete chunks on disk (worker side)
         self._start = None
         self._end = 0
         self._schema_recs = []
@@ -89,7 +105,12 @@ class BagWriter:
         self._metadata_index_recs = []
         self._chunk_count = 0
         self._reset_chunk()
-        self._write([fmt.MAGIC, fmt.header("ros2", LIBRARY)])
+        self._queue = None
+        if background:
+            self._queue = queue.Queue(maxsize=int(queue_chunks))
+            self._worker = threading.Thread(target=self._work, name="bag-writer", daemon=True)
+            self._worker.start()
+        self._submit(self._write, [fmt.MAGIC, fmt.header("ros2", LIBRARY)])
 
     # -- public -----------------------------------------------------------------------
     def add_topic(self, topic, type_name, qos=None):
@@ -124,7 +145,7 @@ class BagWriter:
         recs.append(rec)
         self._topics[topic] = {"id": cid, "type": tname, "qos": profiles}
         self._counts[cid] = 0
-        self._write(recs)
+        self._submit(self._write, recs)
         return cid
 
     def write(self, topic, cdr, log_time_ns, publish_time_ns=None, sequence=0):
@@ -151,21 +172,25 @@ class BagWriter:
         self._chunk_end = max(self._chunk_end, log)
         self._counts[cid] += 1
         if self._chunk_bytes >= self._chunk_size:
-            self._flush_chunk()
+            self._submit_chunk()
 
     def flush(self):
-        """Close the open chunk and hand it to the OS (bounds what a crash can lose)."""
+        """Close the open chunk and hand it to the OS (bounds what a crash can lose). With
+        ``background`` this also waits until the worker has written everything."""
         self._check_open()
-        self._flush_chunk()
+        self._submit_chunk()
+        if self._queue is not None:
+            self._queue.join()
+        self._raise_failure()
 
     @property
     def message_count(self):
-        """Messages accepted so far (including the open chunk)."""
+        """Messages accepted so far (including those not yet on disk)."""
         return sum(self._counts.values())
 
     @property
     def topics(self):
-        """topic -> (type, count) of what was written so far."""
+        """topic -> (type, count) of what was accepted so far."""
         return {t: (v["type"], self._counts[v["id"]]) for t, v in self._topics.items()}
 
     def close(self):
@@ -173,19 +198,18 @@ class BagWriter:
         if self._closed:
             return
         try:
-            self._flush_chunk()
-            if self._rosbag2:
-                meta = fmt.metadata("rosbag2", {"serialized_metadata": self.rosbag2_metadata_yaml()})
-                self._metadata_index_recs.append(fmt.metadata_index(self._offset, len(meta), "rosbag2"))
-                self._write([meta])
-            self._write([fmt.data_end(0)])
-            self._write(self._summary())
-            if self._fsync:
-                os.fsync(self._fd)
+            if self._failed is None:
+                self._submit_chunk()
+                self._submit(self._finish)
         finally:
-            if not self._closed:
-                self._closed = True
+            if self._queue is not None:
+                self._queue.put(None)
+                self._worker.join()
+            self._closed = True
+            if self._failed is None:
                 os.close(self._fd)
+        if not self._reported:
+            self._raise_failure()
 
     def __enter__(self):
         return self
@@ -215,12 +239,34 @@ class BagWriter:
                "custom_data": {}, "ros_distro": ROS_DISTRO}
         return to_yaml(doc)
 
-    # -- internals --------------------------------------------------------------------
+    # -- caller side --------------------------------------------------------------------
     def _check_open(self):
-        if self._failed is not None:
-            raise BagWriteError(f"{self.path}: writer stopped after an earlier error: {self._failed}")
+        self._raise_failure()
         if self._closed:
             raise BagError(f"{self.path}: writer is closed")
+
+    def _raise_failure(self):
+        if self._failed is None:
+            return
+        strerror, errno, state = self._failed.args
+        lost = self.message_count - self._saved
+        self._reported = True
+        raise BagWriteError(
+            f"writing {self.path} failed: {strerror} (errno {errno}). The file was {state}: "
+            f"{self._saved} messages are safe, {lost} were lost. Run `lgs-wfs recover {self.path} "
+            f"OUT.mcap` (on a disk with space) for a complete bag with summary.",
+            messages_kept=self._saved, messages_lost=lost)
+
+    def _submit(self, fn, *args):
+        if self._queue is None:
+            try:
+                fn(*args)
+            except _Failed:
+                pass
+            self._raise_failure()
+        else:
+            self._raise_failure()
+            self._queue.put((fn, args))
 
     def _reset_chunk(self):
         self._parts = []
@@ -230,25 +276,48 @@ class BagWriter:
         self._chunk_start = None
         self._chunk_end = 0
 
-    def _flush_chunk(self):
+    def _submit_chunk(self):
         if self._chunk_n == 0:
             return
-        records = b"".join(self._parts)
+        snap = (self._parts, self._index, self._chunk_n, self._chunk_start, self._chunk_end)
+        self._reset_chunk()
+        self._submit(self._store_chunk, *snap)
+
+    # -- worker side (or inline) --------------------------------------------------------
+    def _work(self):
+        while True:
+            job = self._queue.get()
+            try:
+                if job is None:
+                    return
+                if self._failed is None:
+                    fn, args = job
+                    try:
+                        fn(*args)
+                    except _Failed:
+                        pass
+                    except Exception as err:      # never let the worker die silently
+                        try:
+                            self._fail(OSError(getattr(err, "errno", None) or 0, f"{type(err).__name__}: {err}"))
+                        except _Failed:
+                            pass
+            finally:
+                self._queue.task_done()
+
+    def _store_chunk(self, parts, index, n, start, end):
+        records = b"".join(parts)
         crc = zlib.crc32(records) if self._crc else 0
         data = self._compress(records) if self._compress else records
-        prefix = fmt.chunk_prefix(self._chunk_start, self._chunk_end, len(records), crc,
-                                  self._comp_name, len(data))
+        prefix = fmt.chunk_prefix(start, end, len(records), crc, self._comp_name, len(data))
         chunk_offset = self._offset
         chunk_len = len(prefix) + len(data)
         mi_offsets, mi_recs, pos = {}, [], chunk_offset + chunk_len
-        for cid, pairs in self._index.items():
+        for cid, pairs in index.items():
             rec = fmt.message_index(cid, np.asarray(pairs, dtype="<u8").tobytes())
             mi_offsets[cid] = pos
             pos += len(rec)
             mi_recs.append(rec)
-        n, start, end = self._chunk_n, self._chunk_start, self._chunk_end
-        self._reset_chunk()
-        self._write([prefix, data] + mi_recs, lost=n)
+        self._write([prefix, data] + mi_recs)
         self._saved += n
         self._chunk_count += 1
         self._start = start if self._start is None else min(self._start, start)
@@ -257,9 +326,22 @@ class BagWriter:
                                                       pos - chunk_offset - chunk_len, self._comp_name,
                                                       len(data), len(records)))
 
+    def _finish(self):
+        if self._rosbag2:
+            meta = fmt.metadata("rosbag2", {"serialized_metadata": self.rosbag2_metadata_yaml()})
+            self._metadata_index_recs.append(fmt.metadata_index(self._offset, len(meta), "rosbag2"))
+            self._write([meta])
+        self._write([fmt.data_end(0)])
+        self._write(self._summary())
+        if self._fsync:
+            try:
+                os.fsync(self._fd)
+            except OSError as err:
+                self._fail(err)
+
     def _summary(self):
-        groups, offsets, pos = [], [], self._offset
-        counts = {self._topics[t]["id"]: self._counts[self._topics[t]["id"]] for t in self._topics}
+        offsets, groups, pos = [], [], self._offset
+        counts = {v["id"]: self._counts[v["id"]] for v in self._topics.values()}
         stats = fmt.statistics(self._saved, len(self._schemas), len(self._topics),
                                len(self._metadata_index_recs), self._chunk_count,
                                self._start or 0, self._end, counts)
@@ -271,16 +353,14 @@ class BagWriter:
                 offsets.append(fmt.summary_offset(op, pos, size))
                 groups += recs
                 pos += size
-        summary_start = self._offset
-        offset_start = pos
-        body = groups + offsets + [fmt.footer_prefix(summary_start, offset_start)]
+        body = groups + offsets + [fmt.footer_prefix(self._offset, pos)]
         crc = 0
         for part in body:
             crc = zlib.crc32(part, crc)
         return body + [crc.to_bytes(4, "little"), fmt.MAGIC]
 
-    def _write(self, parts, lost=0):
-        """Write whole records; on OSError cut back to the last good offset and raise."""
+    def _write(self, parts):
+        """Write whole records with writev; on OSError cut back and raise _Failed."""
         parts = [p for p in parts if len(p)]
         total = sum(len(p) for p in parts)
         try:
@@ -295,34 +375,28 @@ class BagWriter:
                     if n:
                         parts[0] = memoryview(parts[0])[n:]
         except OSError as err:
-            self._fail(err, lost)
+            self._fail(err)
         self._offset += total
-        self._good = self._offset
 
-    def _fail(self, err, lost):
-        """Truncate to the last complete group, try a minimal valid ending, close, raise."""
-        lost += self._chunk_n
-        self._failed = err.strerror or str(err)
+    def _fail(self, err):
+        """Truncate to the last complete group, try a minimal valid ending, close the file."""
+        good = self._offset
         ending_ok = False
         try:
-            os.ftruncate(self._fd, self._good)
+            os.ftruncate(self._fd, good)
             ending = fmt.data_end(0) + fmt.footer_prefix(0, 0) + b"\0\0\0\0" + fmt.MAGIC
-            os.lseek(self._fd, self._good, os.SEEK_SET)
+            os.lseek(self._fd, good, os.SEEK_SET)
             ending_ok = os.write(self._fd, ending) == len(ending)
         except OSError:
             pass
         try:
             if not ending_ok:
-                os.ftruncate(self._fd, self._good)
+                os.ftruncate(self._fd, good)
         except OSError:
             pass
         finally:
             os.close(self._fd)
-            self._closed = True
         state = ("closed with a valid MCAP ending (no summary)" if ending_ok else
                  "cut at its last complete chunk")
-        raise BagWriteError(
-            f"writing {self.path} failed: {self._failed} (errno {err.errno}). The file was {state}: "
-            f"{self._saved} messages are safe, {lost} were lost. Run `lgs-wfs recover {self.path} "
-            f"OUT.mcap` on a disk with space to get a complete bag with summary.",
-            messages_kept=self._saved, messages_lost=lost) from None
+        self._failed = _Failed(err.strerror or str(err), err.errno, state)
+        raise self._failed
