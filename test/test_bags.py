@@ -343,6 +343,8 @@ def test_truncated_bag_reads_to_last_complete_chunk_and_recovers(tmp_path):
             assert len(list(r.messages())) == expect
             assert not r.complete and r.problems
         out = tmp_path / f"rec{cut}.mcap"
+        with pytest.raises(BagError):
+            recover(t, t, overwrite=True)                                 # never onto the source
         stats = recover(t, out)
         assert stats["messages"] == expect and not stats["source_complete"]
         with BagReader(out) as r:                                         # strict: complete again

@@ -448,6 +448,8 @@ def recover(src, dst, *, overwrite=False, compression="zstd"):
     complete bag. Returns {"messages": n, "topics": {topic: n}, "problems": [...],
     "source_complete": bool}. This is the recovery command (``lgs-wfs recover SRC DST``)."""
     from .writer import BagWriter
+    if Path(dst).exists() and Path(src).exists() and os.path.samefile(src, dst):
+        raise BagError(f"{dst}: recovery must write a new file, not the damaged source")
     reader = BagReader(src, strict=False)
     counts = {}
     try:
