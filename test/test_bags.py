@@ -572,3 +572,25 @@ def test_full_tmpfs_gives_enospc_and_a_readable_bag(tmp_path):
         np.testing.assert_array_equal(arr[:, 1, 1], np.arange(kept).astype(np.uint16))
     finally:
         subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+@pytest.mark.parametrize("chunked", [True, False])
+def test_reads_bags_written_by_the_mcap_library(tmp_path, chunked):
+    """Other tools put Schema/Channel records inside chunks, or write no chunks at all."""
+    from mcap.writer import CompressionType, Writer
+    p = tmp_path / "other.mcap"
+    frames = _frames(5)
+    with open(p, "wb") as f:
+        w = Writer(f, chunk_size=10_000, compression=CompressionType.LZ4, use_chunking=chunked)
+        w.start(profile="ros2", library="other")
+        sid = w.register_schema("sensor_msgs/msg/Image", "ros2msg",
+                                message_definition("sensor_msgs/msg/Image").encode())
+        cid = w.register_channel("/cam", "cdr", sid)
+        for i in range(5):
+            w.add_message(cid, log_time=100 + i, data=encode_image(frames[i], i), publish_time=i)
+        w.finish()
+    with BagReader(p) as r:
+        assert r.topics() == {"/cam": ("sensor_msgs/msg/Image", 5)} and r.library == "other"
+        st, arr = r.images("/cam")
+    np.testing.assert_array_equal(st, np.arange(5))
+    np.testing.assert_array_equal(arr, frames)
