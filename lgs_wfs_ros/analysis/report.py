@@ -1,0 +1,322 @@
+"""``lgs-wfs report BAG``: per-algorithm errors, CRB, error by radius and over time, plots, JSON.
+
+For every centroider segment of a bag (see :mod:`.bagdata`) the slopes are joined to the
+truths by header stamp and summarised with :func:`.metrics.summarize` (mean Euclidean
+error, per-axis mean absolute error, RMS, bias; px and mas). The Cramer-Rao bound needs the
+noise-free image model of the same frames: for a bag written by our simulator it is rebuilt
+from the simulator settings stored in the sensor description, at the truths of a sample of
+frames (:func:`simulator_model`); :mod:`..centroiding.crb` then bounds the position error
+(Poisson + read noise, flux a nuisance parameter). A bag from another tool has no such
+model and its report says so. (Rebuilding the model from the noisy frames themselves was
+tried and rejected: the spot core is 1.19 px FWHM, so Fourier re-centring of undersampled
+frames rings and the bound collapses.)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.special import ellipe
+
+from ..bags import join_by_stamp
+from ..optics import geometry
+from . import metrics
+from .bagdata import BagData, joined, load_bag
+
+CRB_SAMPLES = 16
+
+
+# -- CRB --------------------------------------------------------------------------------------
+def mean_abs_norm(cov: np.ndarray) -> np.ndarray:
+    """``E|v|`` for ``v ~ N(0, cov)``: ``(..., 2, 2)`` covariances -> ``(...)``.
+
+    With eigenvalues ``s1^2 >= s2^2``: ``sqrt(2/pi) s1 E(1 - s2^2/s1^2)`` (E the complete
+    elliptic integral of the second kind): ``s sqrt(pi/2)`` for a round error, ``s1 sqrt(2/pi)``
+    for a one-dimensional one.
+    """
+    ev = np.linalg.eigvalsh(np.nan_to_num(cov, nan=0.0))
+    s1 = np.sqrt(np.maximum(ev[..., 1], 0))
+    s2 = np.sqrt(np.maximum(ev[..., 0], 0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = np.where(s1 > 0, 1 - (s2 / np.where(s1 > 0, s1, 1)) ** 2, 0.0)
+    out = math.sqrt(2 / math.pi) * s1 * ellipe(m)
+    return np.where(np.isfinite(cov).all(axis=(-1, -2)), out, np.nan)
+
+
+def crb_summary(cov: np.ndarray, mas_per_px: float = 500.0) -> dict:
+    """Summary of ``(n, 2, 2)`` CRB covariances (detector axes, px^2) in the report's metrics.
+
+    ``mean_euclid``: mean over subapertures of the expected ``|err|`` of an unbiased
+    estimator at the bound; ``mae``: expected per-axis mean absolute error
+    (``sqrt(2/pi) sigma``, averaged over x and y); ``sigma_x``, ``sigma_y``: mean bound std.
+    """
+    sig = np.sqrt(np.einsum("nii->ni", cov))
+    out = {"mean_euclid": float(np.nanmean(mean_abs_norm(cov))),
+           "mae": float(np.nanmean(math.sqrt(2 / math.pi) * sig)),
+           "sigma_x": float(np.nanmean(sig[:, 0])), "sigma_y": float(np.nanmean(sig[:, 1])),
+           "n_subaps": int(np.isfinite(sig).all(axis=1).sum())}
+    out.update({k + "_mas": out[k] * mas_per_px for k in ("mean_euclid", "mae", "sigma_x", "sigma_y")})
+    return out
+
+
+def crb_covariances(sensor, image_at, truths: np.ndarray) -> np.ndarray:
+    """``(K*n, 2, 2)`` CRB covariances (detector axes, px^2) at ``K`` truths ``(K, n, 2)``.
+
+    image_at(k, shift): expected counts ``(n, p, p)`` (block pixel axes, background included
+    as in the frames) of frame ``k`` with the spot displaced by ``shift (n, 2)`` px, detector
+    axes. Derivatives by central differences (``crb.model_derivatives``).
+    """
+    from ..centroiding.crb import crb_covariance, model_derivatives
+
+    out = []
+    for k, t in enumerate(truths):
+        ok = np.isfinite(t).all(axis=1)
+        t = np.where(ok[:, None], t, 0.0)
+        mu, dx, dy = model_derivatives(lambda s, k=k: image_at(k, s), t.shape[0], shift=t)
+        cov = crb_covariance(np.maximum(mu - sensor.background_e, 0), dx, dy,
+                             read_noise_e=sensor.read_noise_e, background_e=sensor.background_e)
+        cov[~ok] = np.nan
+        out.append(cov)
+    return np.concatenate(out)
+
+
+def simulator_model(data: BagData):
+    """``(image_at, truths (K, n, 2), note)`` from the simulator settings in the sensor
+    description, or None when the bag does not carry them (a bag from another tool)."""
+    if data.sensor is None or data.truth is None or not len(data.truth):
+        return None
+    try:
+        from ..optics.simulator import expected_images_factory
+    except ImportError:
+        return None
+    try:
+        factory = expected_images_factory(data.sensor, data.sensor_info)
+    except (ValueError, KeyError, TypeError):
+        return None
+    if factory is None:
+        return None
+    lay = geometry.layout(data.sensor)
+    idx = np.unique(np.linspace(0, len(data.truth) - 1, min(CRB_SAMPLES, len(data.truth))).astype(int))
+    truths = data.truth.data[idx][:, lay.valid.ravel()].astype(float)
+    stamps = data.truth.stamps[idx]
+    return (lambda k, s: factory(int(stamps[k]), s)), truths, \
+        f"simulator image model at the truths of {len(idx)} frames"
+
+
+# -- analysis ---------------------------------------------------------------------------------
+def _valid(data: BagData) -> tuple[np.ndarray, np.ndarray | None]:
+    """(valid cell mask (G*G,), r_m of the valid cells or None)."""
+    if data.sensor is not None:
+        lay = geometry.layout(data.sensor)
+        return lay.valid.ravel(), np.asarray(lay.r_m)
+    finite = np.isfinite(data.truth.data).all(axis=2).any(axis=0)
+    return finite, None
+
+
+def radius_edges(r_m: np.ndarray, rings: int = 6) -> np.ndarray:
+    lo, hi = float(r_m.min()), float(r_m.max())
+    if hi - lo < 1e-9:
+        return np.array([lo - 0.25, hi + 0.25])
+    return np.linspace(lo, hi + 1e-6, rings + 1)
+
+
+def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
+    """The report's numbers for a loaded bag (JSON-able dict; see :func:`report_bag`).
+
+    image_model: ``(image_at(k, shift), truths (K, n, 2), note)`` for the CRB (default: the
+    simulator's model from the bag's sensor description, when it has one).
+    """
+    if data.truth is None or len(data.truth) == 0:
+        raise ValueError(f"{data.path}: no truths recorded; nothing to compare against")
+    if not data.segments:
+        raise ValueError(f"{data.path}: no slopes topic (/<namespace>/slopes); run "
+                         f"`lgs-wfs replay {data.path} --algorithms cog,cmf` to add some")
+    mas = data.mas_per_px
+    valid, r_m = _valid(data)
+    edges = radius_edges(r_m) if r_m is not None else None
+    out = {"bag": data.path, "sensor": data.sensor_info or None, "mas_per_px": mas,
+           "frames": data.frame_count, "truths": len(data.truth), "algorithms": {}, "crb": None}
+    series = {}
+    for seg in data.segments:
+        stamps, est, tru, j = joined(data.truth, seg.slopes)
+        err = metrics.errors(est[:, valid], tru[:, valid])            # (K, n, 2)
+        s = metrics.summarize(err, mas)
+        s["algorithm"] = seg.description.get("algorithm", seg.namespace)
+        s["namespace"] = seg.namespace
+        s["description"] = seg.description
+        s["join"] = {"slopes": len(seg.slopes), "joined": int(len(stamps)),
+                     "truth_without_slopes": int(j.n_missing[1]), "slopes_without_truth": int(j.n_missing[0]),
+                     "duplicate_slope_stamps": int(j.duplicates[1]),
+                     "duplicate_truth_stamps": int(j.duplicates[0])}
+        if edges is not None:
+            s["by_radius"] = metrics.by_radius(err, r_m, edges)
+        dist = np.hypot(err[..., 0], err[..., 1])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)      # frames with no finite error
+            per_frame = np.nanmean(dist, axis=1) if dist.size else np.zeros(0)
+        series[seg.label] = (stamps, per_frame)
+        out["algorithms"][seg.label] = s
+    cog = [v for v in out["algorithms"].values() if v["algorithm"] == "cog"]
+    for v in out["algorithms"].values():
+        ref = cog[0] if cog else None
+        v["ratio_to_cog"] = (v["mean_euclid"] / ref["mean_euclid"] if ref and ref["mean_euclid"] > 0
+                             else None)
+        v["mae_ratio_to_cog"] = (v["mae"] / ref["mae"] if ref and ref["mae"] > 0 else None)
+    if crb:
+        out["crb"] = _crb_block(data, r_m, edges, mas, image_model)
+        if out["crb"] and out["crb"].get("mean_euclid"):
+            for v in out["algorithms"].values():
+                v["ratio_to_crb"] = v["mean_euclid"] / out["crb"]["mean_euclid"]
+    out["_series"] = series
+    return out
+
+
+def _crb_block(data, r_m, edges, mas, image_model=None):
+    got = image_model if image_model is not None else simulator_model(data)
+    if got is None:
+        return {"method": "not computed: the bag carries no image model (simulator settings in "
+                          "its sensor description)"}
+    image_at, truths, note = got
+    cov = crb_covariances(data.sensor, image_at, truths)
+    block = crb_summary(cov, mas)
+    block["method"] = (note + f", read noise {data.sensor.read_noise_e:g} e-, background "
+                       f"{data.sensor.background_e:g} e-; flux a nuisance parameter")
+    n = truths.shape[1]
+    if edges is not None and n > 1:
+        d = np.nanmean(mean_abs_norm(cov).reshape(-1, n), axis=0)
+        ring = np.digitize(r_m, edges) - 1
+        block["by_radius"] = [{"r_min_m": float(edges[k]), "r_max_m": float(edges[k + 1]),
+                               "mean_euclid": float(np.nanmean(d[ring == k])) if (ring == k).any()
+                               else float("nan")} for k in range(len(edges) - 1)]
+    return block
+
+
+# -- output -----------------------------------------------------------------------------------
+def format_report(res: dict) -> str:
+    mas = res["mas_per_px"]
+    lines = [f"bag {res['bag']}: {res['frames']} frames, {res['truths']} truths", ""]
+    lines.append(metrics.table(res["algorithms"], mas))
+    crb = res.get("crb") or {}
+    if "mean_euclid" in crb:
+        lines.append(f"{'CRB':<12}{crb['mean_euclid']:>12.4f}{crb['mae']:>11.4f}{'':>27}"
+                     f"{crb['mean_euclid_mas']:>13.1f}   (unbiased floor)")
+    lines.append("")
+    lines.append(f"{'algorithm':<16}{'x CoG':>8}{'x CRB':>8}{'MAE x CoG':>11}{'joined':>9}"
+                 f"{'no slope':>10}{'dup':>6}")
+    for name, v in res["algorithms"].items():
+        f = (lambda x: f"{x:>8.3f}" if x is not None else f"{'-':>8}")
+        j = v["join"]
+        lines.append(f"{name:<16}{f(v.get('ratio_to_cog'))}{f(v.get('ratio_to_crb'))}"
+                     f"{(f(v.get('mae_ratio_to_cog'))):>11}{j['joined']:>9}{j['truth_without_slopes']:>10}"
+                     f"{j['duplicate_slope_stamps']:>6}")
+    if "method" in crb:
+        lines.append("")
+        lines.append("CRB: " + crb["method"])
+    first = next(iter(res["algorithms"].values()))
+    if first.get("by_radius") and len(first["by_radius"]) > 1:
+        lines.append("")
+        lines.append("mean |err| (px) by subaperture radius")
+        head = f"{'r (m)':<14}" + "".join(f"{n[:11]:>12}" for n in res["algorithms"]) + \
+               (f"{'CRB':>12}" if crb.get("by_radius") else "")
+        lines.append(head)
+        for k, ring in enumerate(first["by_radius"]):
+            row = f"{ring['r_min_m']:5.2f}-{ring['r_max_m']:5.2f}   "
+            row += "".join(f"{v['by_radius'][k]['mean_euclid']:>12.4f}" for v in res["algorithms"].values())
+            if crb.get("by_radius"):
+                row += f"{crb['by_radius'][k]['mean_euclid']:>12.4f}"
+            lines.append(row)
+    return "\n".join(lines)
+
+
+def write_plots(res: dict, out_dir: Path) -> list[str]:
+    """PNG plots of the error time series and (full pupil) the error by radius."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    fig, ax = plt.subplots(figsize=(8, 4))
+    t0 = min((s[0] for s, _ in res["_series"].values() if len(s)), default=0)
+    for name, (stamps, per_frame) in res["_series"].items():
+        ax.plot((stamps - t0) / 1e9, per_frame, lw=0.8,
+                label=f"{name} (mean {res['algorithms'][name]['mean_euclid']:.3f} px)")
+    crb = res.get("crb") or {}
+    if "mean_euclid" in crb:
+        ax.axhline(crb["mean_euclid"], color="k", ls="--", lw=1, label=f"CRB ({crb['mean_euclid']:.3f} px)")
+    ax.set_xlabel("time from first stamp (s)")
+    ax.set_ylabel("mean |error| over subapertures (px)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    p = out_dir / "error_timeseries.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(str(p))
+    first = next(iter(res["algorithms"].values()))
+    if first.get("by_radius") and len(first["by_radius"]) > 1:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for name, v in res["algorithms"].items():
+            mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in v["by_radius"]]
+            ax.plot(mid, [r["mean_euclid"] for r in v["by_radius"]], "o-", label=name)
+        if crb.get("by_radius"):
+            mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in crb["by_radius"]]
+            ax.plot(mid, [r["mean_euclid"] for r in crb["by_radius"]], "k--", label="CRB")
+        ax.set_xlabel("subaperture distance from the launch (m)")
+        ax.set_ylabel("mean |error| (px)")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        p = out_dir / "error_by_radius.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        files.append(str(p))
+    return files
+
+
+def public(res: dict) -> dict:
+    """The JSON summary: ``res`` without its private arrays, NaN written as null."""
+    def clean(x):
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items() if not str(k).startswith("_")}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, (np.floating, np.integer)):
+            return clean(x.item())
+        return x
+    return clean(res)
+
+
+def report_bag(path, out_dir=None, as_json: bool = False, max_frames: int = 200) -> int:
+    """Analyse a bag, print the table (or with ``as_json`` the JSON summary alone).
+
+    out_dir: where ``summary.json`` and the PNGs go; default ``<bag stem>_report`` beside
+    the bag, none at all with ``as_json`` and no ``out_dir``. Returns 0. Raises BagError /
+    ValueError for a bag that cannot be analysed.
+    """
+    data = load_bag(path, max_frames=max_frames)
+    res = analyse(data)
+    if out_dir is None and not as_json:
+        out_dir = Path(path).with_name(Path(path).stem + "_report")
+    summary = public(res)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        summary["plots"] = write_plots(res, out)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    if as_json:
+        print(json.dumps(summary, indent=2, sort_keys=True))
+    else:
+        print(format_report(res))
+        if out_dir is not None:
+            print(f"\nwrote {Path(out_dir) / 'summary.json'} and {len(summary['plots'])} plot(s)")
+    return 0
+
+
+__all__ = ["report_bag", "analyse", "format_report", "write_plots", "public", "crb_summary",
+           "mean_abs_norm", "crb_covariances", "simulator_model"]

@@ -1,0 +1,295 @@
+"""Offline analysis: joins by stamp, metrics on bags with known answers, CRB, inspect, report,
+replay, and refusal of bad bags through the CLI (one line, exit code 2, no traceback)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros import cli
+from lgs_wfs_ros.analysis import bagdata, report
+from lgs_wfs_ros.analysis.inspect import bag_info, inspect_bag
+from lgs_wfs_ros.analysis.replay import replay_bag
+from lgs_wfs_ros.bags import BagError, BagReader, BagWriter, encode_string
+from lgs_wfs_ros.centroiding.crb import crb_of
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+
+from spotgen import spots
+
+T0 = 1_700_000_000_000_000_000
+DT = 1_428_571                      # ~700 Hz
+SIGMA = 1.19 / 2.3548
+
+
+def single():
+    return Sensor.paper_single("polar", dtype="float32")
+
+
+def small_pupil():
+    return Sensor(n_subaps=8, diameter_m=4.0, obstruction_m=0.5, detector="cartesian", dtype="float32")
+
+
+def write_bag(path, sensor, truths, slopes, *, frames=None, truth_stamps=None, changes=None):
+    """truths (F, n, 2); slopes {ns: (stamps, (K, n, 2))}; frames (F, H, W) or None."""
+    stamps = T0 + DT * np.arange(len(truths)) if truth_stamps is None else truth_stamps
+    with bagdata.ContractBagWriter(path, sensor, sensor_extra={"profile": "test"}, log_ns=T0) as w:
+        for ns, desc in (changes or {}).items():
+            for log, d in desc:
+                w.centroider(ns, d, log)
+        for k, s in enumerate(stamps):
+            if frames is not None:
+                w.frame(int(s), frames[k])
+            w.truth(int(s), truths[k])
+        for ns, (st, sl) in slopes.items():
+            for s, v in zip(st, sl):
+                w.slopes(ns, int(s), v, int(s) + 1000)
+    return path
+
+
+# -- join and metrics with known answers -------------------------------------------------------
+def test_known_errors_two_algorithms(tmp_path):
+    rng = np.random.default_rng(1)
+    truths = rng.normal(0, 0.5, size=(50, 1, 2))
+    stamps = T0 + DT * np.arange(50)
+    a = truths + np.array([0.3, -0.4])                    # constant error: |err| = 0.5
+    sign = np.where(np.arange(50) % 2, 1.0, -1.0)[:, None, None]
+    b = truths + sign * np.array([0.1, 0.0])              # +-0.1 px in x: mean 0.1, bias 0
+    path = write_bag(tmp_path / "k.mcap", single(), truths, {"cog": (stamps, a), "cmf": (stamps, b)},
+                     changes={"cog": [(T0, {"algorithm": "cog"})], "cmf": [(T0, {"algorithm": "cmf"})]})
+    res = report.analyse(bagdata.load_bag(path), crb=False)
+    cog, cmf = res["algorithms"]["cog"], res["algorithms"]["cmf"]
+    assert cog["mean_euclid"] == pytest.approx(0.5, abs=1e-6)
+    assert cog["mae"] == pytest.approx(0.35, abs=1e-6)
+    assert cog["bias_x"] == pytest.approx(0.3, abs=1e-6) and cog["bias_y"] == pytest.approx(-0.4, abs=1e-6)
+    assert cog["mean_euclid_mas"] == pytest.approx(250.0, abs=1e-3)
+    assert cmf["mean_euclid"] == pytest.approx(0.1, abs=1e-6)
+    assert cmf["bias_x"] == pytest.approx(0.0, abs=1e-6)
+    assert cmf["ratio_to_cog"] == pytest.approx(0.2, abs=1e-5)
+    assert cog["n"] == 50 and cog["join"]["joined"] == 50
+
+
+def test_join_missing_and_duplicate_stamps(tmp_path):
+    truths = np.zeros((10, 1, 2))
+    stamps = T0 + DT * np.arange(10)
+    # slopes: stamp 3 missing, stamp 5 repeated (first copy error 0.2, second 9.0), one stray
+    st = np.array([stamps[0], stamps[1], stamps[2], stamps[4], stamps[5], stamps[5], stamps[6],
+                   stamps[7], stamps[8], stamps[9], T0 + 10**12])
+    sl = np.full((len(st), 1, 2), [0.2, 0.0])
+    sl[5] = [9.0, 0.0]
+    path = write_bag(tmp_path / "j.mcap", single(), truths, {"cog": (st, sl)})
+    s = report.analyse(bagdata.load_bag(path), crb=False)["algorithms"]["cog"]
+    assert s["join"] == {"slopes": 11, "joined": 9, "truth_without_slopes": 1, "slopes_without_truth": 1,
+                         "duplicate_slope_stamps": 1, "duplicate_truth_stamps": 0}
+    assert s["n"] == 9
+    assert s["mean_euclid"] == pytest.approx(0.2, abs=1e-6)      # the first copy of stamp 5 counts
+
+
+def test_nan_slopes_are_counted_not_averaged(tmp_path):
+    truths = np.zeros((4, 1, 2))
+    st = T0 + DT * np.arange(4)
+    sl = np.array([[[0.1, 0]], [[np.nan, np.nan]], [[0.3, 0]], [[0.2, 0]]])
+    path = write_bag(tmp_path / "n.mcap", single(), truths, {"cog": (st, sl)})
+    s = report.analyse(bagdata.load_bag(path), crb=False)["algorithms"]["cog"]
+    assert s["n"] == 3 and s["n_nan"] == 1
+    assert s["mean_euclid"] == pytest.approx(0.2, abs=1e-6)
+
+
+def test_centroider_switch_splits_segments(tmp_path):
+    truths = np.zeros((20, 1, 2))
+    st = T0 + DT * np.arange(20)
+    sl = np.where(np.arange(20)[:, None, None] < 8, 0.5, 0.1) * np.array([1.0, 0.0])
+    changes = {"wfs": [(T0, {"algorithm": "cog"}), (T0 + 1, {"algorithm": "cog"}),   # republished
+                       (int(st[8]), {"algorithm": "cmf", "options": {"history": 5}})]}
+    path = write_bag(tmp_path / "s.mcap", single(), truths, {"wfs": (st, sl)}, changes=changes)
+    res = report.analyse(bagdata.load_bag(path), crb=False)
+    assert list(res["algorithms"]) == ["wfs:cog", "wfs:cmf"]
+    assert res["algorithms"]["wfs:cog"]["n"] == 8
+    assert res["algorithms"]["wfs:cog"]["mean_euclid"] == pytest.approx(0.5, abs=1e-6)
+    assert res["algorithms"]["wfs:cmf"]["n"] == 12
+    assert res["algorithms"]["wfs:cmf"]["mean_euclid"] == pytest.approx(0.1, abs=1e-6)
+    assert res["algorithms"]["wfs:cmf"]["ratio_to_cog"] == pytest.approx(0.2, abs=1e-5)
+
+
+def test_full_pupil_by_radius(tmp_path):
+    sensor = small_pupil()
+    lay = geometry.layout(sensor)
+    truths = np.zeros((3, lay.n_valid, 2))
+    err = np.stack([lay.r_m / 10, np.zeros(lay.n_valid)], axis=1)       # error grows with r
+    st = T0 + DT * np.arange(3)
+    path = write_bag(tmp_path / "p.mcap", sensor, truths, {"cog": (st, truths + err)})
+    res = report.analyse(bagdata.load_bag(path), crb=False)
+    rings = res["algorithms"]["cog"]["by_radius"]
+    assert len(rings) >= 2
+    for ring in rings:
+        sel = (lay.r_m >= ring["r_min_m"]) & (lay.r_m < ring["r_max_m"])
+        if sel.any():
+            assert ring["mean_euclid"] == pytest.approx((lay.r_m[sel] / 10).mean(), rel=1e-5)
+    assert res["algorithms"]["cog"]["n"] == 3 * lay.n_valid
+
+
+# -- CRB ------------------------------------------------------------------------------------------
+def test_mean_abs_norm_known_cases():
+    s = 0.3
+    cov = np.array([[[s * s, 0], [0, s * s]], [[s * s, 0], [0, 0]], [[0.04, 0.0], [0.0, 0.01]]])
+    got = report.mean_abs_norm(cov)
+    assert got[0] == pytest.approx(s * math.sqrt(math.pi / 2), rel=1e-9)
+    assert got[1] == pytest.approx(s * math.sqrt(2 / math.pi), rel=1e-9)
+    rng = np.random.default_rng(0)
+    v = rng.normal(0, [0.2, 0.1], size=(400000, 2))
+    assert got[2] == pytest.approx(np.hypot(v[:, 0], v[:, 1]).mean(), rel=0.005)
+
+
+def test_report_crb_matches_model_crb(tmp_path):
+    sensor = single()
+    rng = np.random.default_rng(3)
+    f, photons = 200, 1000.0
+    truths = rng.normal(0, 0.3, size=(f, 1, 2))
+    imgs = spots(truths[:, 0], photons=photons, sigma=SIGMA, rng=rng).astype(np.float32)
+    est = truths + rng.normal(0, 0.05, size=truths.shape)
+    path = write_bag(tmp_path / "c.mcap", sensor, truths, {"cog": (T0 + DT * np.arange(f), est)},
+                     frames=imgs)
+    model = lambda s: spots(s, photons=photons, sigma=SIGMA)               # noqa: E731
+    data = bagdata.load_bag(path)
+    res = report.analyse(data, image_model=(lambda k, s: model(s), truths[:10], "test model"))
+    exact = crb_of(model, 1)[0]                                       # (sx, sy) px at 0
+    assert res["crb"]["sigma_x"] == pytest.approx(exact[0], rel=0.1)
+    assert res["crb"]["sigma_y"] == pytest.approx(exact[1], rel=0.1)
+    assert res["crb"]["mean_euclid"] == pytest.approx(
+        float(np.mean(report.mean_abs_norm(report.crb_covariances(sensor, lambda k, s: model(s),
+                                                                   truths[:10])))), rel=1e-9)
+    # a round Gaussian on 1 px pixels: about sqrt(sigma^2 + 1/12) / sqrt(N)
+    assert res["crb"]["sigma_x"] == pytest.approx(math.sqrt(SIGMA ** 2 + 1 / 12) / math.sqrt(photons), rel=0.03)
+    assert res["algorithms"]["cog"]["ratio_to_crb"] > 1.0
+
+
+# -- inspect, report output, replay -----------------------------------------------------------
+def _frames_bag(tmp_path, name="f.mcap", f=30, sensor=None):
+    sensor = sensor or single()
+    rng = np.random.default_rng(5)
+    truths = rng.normal(0, 0.3, size=(f, 1, 2))
+    imgs = spots(truths[:, 0], photons=1000, sigma=SIGMA, rng=rng).astype(np.float32)
+    return write_bag(tmp_path / name, sensor, truths, {}, frames=imgs), truths, imgs
+
+
+def test_inspect_lists_topics_sensor_and_changes(tmp_path):
+    truths = np.zeros((5, 1, 2))
+    st = T0 + DT * np.arange(5)
+    path = write_bag(tmp_path / "i.mcap", single(), truths, {"cog": (st, truths)},
+                     changes={"cog": [(T0, {"algorithm": "cog"}), (int(st[3]), {"algorithm": "tcog"})]})
+    info = bag_info(path)
+    assert info["topics"]["/wfs/true_slopes"]["count"] == 5
+    assert info["topics"]["/cog/slopes"]["type"] == "sensor_msgs/msg/Image"
+    assert [c["description"]["algorithm"] for c in info["centroiders"]["cog"]] == ["cog", "tcog"]
+    assert info["centroiders"]["cog"][1]["t_s"] == pytest.approx(3 * DT / 1e9, abs=1e-9)
+    text = inspect_bag(path)
+    assert "polar detector" in text and "tcog" in text and "/wfs/true_slopes" in text
+    assert json.loads(inspect_bag(path, as_json=True))["sensor"]["detector"] == "polar"
+
+
+def test_report_writes_json_and_plots(tmp_path, capsys):
+    sensor = small_pupil()
+    lay = geometry.layout(sensor)
+    truths = np.zeros((4, lay.n_valid, 2))
+    st = T0 + DT * np.arange(4)
+    path = write_bag(tmp_path / "r.mcap", sensor, truths, {"cog": (st, truths + 0.1)})
+    out = tmp_path / "rep"
+    assert cli.main(["report", str(path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "cog" in text and "mean |err|" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["algorithms"]["cog"]["mean_euclid"] == pytest.approx(0.1 * math.sqrt(2), rel=1e-5)
+    assert (out / "error_timeseries.png").stat().st_size > 1000
+    assert (out / "error_by_radius.png").stat().st_size > 1000
+    assert cli.main(["report", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["algorithms"]["cog"]["n"] == 4 * lay.n_valid
+
+
+def test_replay_adds_slopes_that_match_the_library(tmp_path, capsys):
+    from lgs_wfs_ros.centroiding import make_centroider
+    path, truths, imgs = _frames_bag(tmp_path)
+    out = tmp_path / "out.mcap"
+    res = replay_bag(path, ["cog", "cmf"], out=out)
+    assert res["frames"] == 30 and res["skipped"] == 0
+    data = bagdata.load_bag(out)
+    segs = {s.label: s for s in data.segments}
+    assert set(segs) == {"cog", "cmf"}
+    direct = np.stack([make_centroider("cog", single()).centroid(im) for im in imgs])
+    np.testing.assert_allclose(segs["cog"].slopes.data[:, 0], direct[:, 0], atol=1e-6)
+    # the original messages were copied
+    with BagReader(out) as r, BagReader(path) as r0:
+        for t, (ty, n) in r0.topics().items():
+            assert r.topics()[t] == (ty, n)
+    # an existing output is refused without --overwrite; a second replay gets new namespaces
+    assert cli.main(["replay", str(path), "--algorithms", "cog", "--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+    res2 = replay_bag(out, ["cog"], out=tmp_path / "out2.mcap", quiet=True)
+    assert res2["namespaces"] == {"cog": "cog_replay"}
+
+
+# -- bad bags through the CLI ------------------------------------------------------------------
+def _bad_files(tmp_path):
+    good, _, _ = _frames_bag(tmp_path, "good.mcap", f=12)
+    raw = good.read_bytes()
+    files = {}
+    files["random"] = tmp_path / "random.mcap"
+    files["random"].write_bytes(np.random.default_rng(0).bytes(5000))
+    files["empty"] = tmp_path / "empty.mcap"
+    files["empty"].write_bytes(b"")
+    files["truncated"] = tmp_path / "trunc.mcap"
+    files["truncated"].write_bytes(raw[: len(raw) // 2])
+    files["text"] = tmp_path / "notes.txt"
+    files["text"].write_text("hello, not a bag\n" * 50)
+    files["missing"] = tmp_path / "nope.mcap"
+    files["directory"] = tmp_path
+    wrong = tmp_path / "wrong_schema.mcap"
+    with BagWriter(wrong) as w:          # true_slopes as a String, no frames, no sensor
+        w.add_topic("/wfs/true_slopes", "std_msgs/msg/String")
+        w.write("/wfs/true_slopes", encode_string("not an image"), T0)
+    files["wrong_schema"] = wrong
+    return files
+
+
+@pytest.mark.parametrize("verb", ["inspect", "report", "replay"])
+def test_cli_refuses_bad_bags(tmp_path, capsys, verb):
+    for kind, path in _bad_files(tmp_path).items():
+        if verb == "inspect" and kind == "wrong_schema":
+            continue                            # a valid MCAP file: inspect describes it
+        args = [verb, str(path)] + (["--out", str(tmp_path / f"o_{kind}.mcap")] if verb == "replay" else [])
+        code = cli.main(args)
+        err = capsys.readouterr().err
+        assert code == 2, (kind, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"lgs-wfs {verb}: "), (kind, err)
+        assert "Traceback" not in err
+        if verb == "replay":
+            assert not (tmp_path / f"o_{kind}.mcap").exists(), kind
+
+
+def test_inspect_flags_wrong_schema(tmp_path):
+    files = _bad_files(tmp_path)
+    text = inspect_bag(files["wrong_schema"])
+    assert "std_msgs/msg/String" in text and "not a complete lgs_wfs_ros bag" in text
+
+
+def test_fuzzed_bags_raise_only_clean_errors(tmp_path):
+    """Random truncations and byte flips: inspect and report either work or raise BagError /
+    ValueError, never anything else."""
+    good, _, _ = _frames_bag(tmp_path, "fz.mcap", f=12)
+    raw = bytearray(good.read_bytes())
+    rng = np.random.default_rng(7)
+    for i in range(30):
+        b = bytearray(raw)
+        if i % 2:
+            b = b[: int(rng.integers(1, len(b)))]
+        else:
+            for pos in rng.integers(0, len(b), size=int(rng.integers(1, 8))):
+                b[pos] ^= int(rng.integers(1, 256))
+        p = tmp_path / f"fz{i}.mcap"
+        p.write_bytes(bytes(b))
+        for fn in (lambda: inspect_bag(p), lambda: report.analyse(bagdata.load_bag(p, max_frames=None))):
+            try:
+                fn()
+            except (BagError, ValueError):
+                pass
