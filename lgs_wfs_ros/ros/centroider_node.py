@@ -1,0 +1,217 @@
+"""centroider_node: frames in, per-subaperture slopes out, algorithm switchable at run time.
+
+Subscribes to ``frame`` (raw CDR, decoded with numpy, no copy) and ``sensor``; publishes
+``slopes`` (32FC2, G x G, the frame's stamp) and the transient-local ``centroider`` description.
+Parameter changes are validated by building the new centroider in the on-set callback (a change
+that cannot apply is refused with the reason and the old algorithm stays); the post-set callback
+swaps it in, so it applies from the next frame.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from .. import bags
+from ..centroiding import ALGORITHMS, make_centroider
+from ..optics import geometry
+from ..sensor import Sensor, SensorError
+from . import environment, parameters, qos
+
+OPTION_PARAMS = ("model", "cmf_update_period", "cmf_reference", "tcog_threshold", "options")
+
+
+class FrameCounters:
+    """What happened to the frames this node saw."""
+
+    def __init__(self):
+        self.received = self.processed = self.dropped = self.rejected = 0
+        self.last_reason = ""
+
+    def as_dict(self) -> dict:
+        return {"received": self.received, "processed": self.processed,
+                "dropped": self.dropped, "rejected": self.rejected}
+
+
+class CentroiderNode(Node):
+    def __init__(self, **kwargs):
+        kwargs.setdefault("namespace", "wfs")
+        super().__init__("centroider_node", **kwargs)
+        parameters.declare(self, "algorithm", "cog", "Centroiding algorithm.", choices=ALGORITHMS)
+        parameters.declare(self, "model", "", "ann: ONNX model path or name in models/ "
+                           "(empty: the default model).")
+        parameters.declare(self, "cmf_update_period", 1, "cmf: frames between filter updates.",
+                           low=1, high=100000)
+        parameters.declare(self, "cmf_reference", "history", "cmf: where the reference comes from.",
+                           choices=("history", "static"))
+        parameters.declare(self, "tcog_threshold", 0.0, "tcog: threshold in counts.",
+                           low=0.0, high=65535.0)
+        parameters.declare(self, "options", "{}", "Extra algorithm options as a JSON object.")
+        parameters.declare(self, "sensor_json", "", "Sensor description to use until one "
+                           "arrives on the sensor topic (empty: the default sensor).")
+        parameters.declare(self, "log_period_s", 5.0, "Seconds between counter log lines.",
+                           low=0.1, high=3600.0)
+
+        self.counters = FrameCounters()
+        self._lock = threading.Lock()
+        self._pending = None
+        self._last_stamp = None
+        self.sensor = self._initial_sensor()
+        self.layout = geometry.layout(self.sensor)
+        self.centroider = self._build(self._settings())
+
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+
+        self._slopes_pub = self.create_publisher(Image, "slopes", qos.SLOPES)
+        self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
+        self.create_subscription(Image, "frame", self._on_frame, qos.FRAME, raw=True)
+        self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
+        self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
+                                            self._log_counters)
+        self._announce("start")
+
+    # -- configuration ---------------------------------------------------------------
+    def _initial_sensor(self) -> Sensor:
+        text = self.get_parameter("sensor_json").value
+        return Sensor.from_json(text) if text else Sensor()
+
+    def _settings(self, overrides: dict | None = None) -> dict:
+        s = parameters.values(self, ("algorithm",) + OPTION_PARAMS)
+        s.update(overrides or {})
+        return s
+
+    def _build(self, settings: dict, sensor: Sensor | None = None):
+        """Make the centroider the settings ask for; ValueError with the reason if impossible."""
+        sensor = sensor or self.sensor
+        name = settings["algorithm"]
+        try:
+            options = json.loads(settings["options"] or "{}")
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"options is not a JSON object: {exc}") from exc
+        if not isinstance(options, dict):
+            raise ValueError("options must be a JSON object")
+        if name == "ann" and settings["model"]:
+            options.setdefault("model", settings["model"])
+        elif name == "cmf":
+            options.setdefault("update_period", int(settings["cmf_update_period"]))
+            options.setdefault("reference", settings["cmf_reference"])
+        elif name == "tcog" and settings["tcog_threshold"] > 0:
+            options.setdefault("threshold", float(settings["tcog_threshold"]))
+        return make_centroider(name, sensor, **options)
+
+    def _validate(self, params):
+        changes = {p.name: p.value for p in params}
+        if "algorithm" in changes and changes["algorithm"] not in ALGORITHMS:
+            return parameters.refuse(f"unknown algorithm {changes['algorithm']!r}; "
+                                     f"choose one of {', '.join(ALGORITHMS)}")
+        if "sensor_json" in changes and changes["sensor_json"]:
+            try:
+                Sensor.from_json(changes["sensor_json"])
+            except (SensorError, TypeError) as exc:
+                return parameters.refuse(str(exc))
+        if set(changes) & ({"algorithm"} | set(OPTION_PARAMS)):
+            try:
+                self._pending = self._build(self._settings(changes))
+            except (ValueError, OSError, RuntimeError) as exc:
+                self._pending = None
+                return parameters.refuse(f"cannot apply: {exc}")
+        return parameters.accept()
+
+    def _apply(self, params):
+        if self._pending is not None:
+            with self._lock:
+                self.centroider, self._pending = self._pending, None
+            self._announce("parameter change")
+
+    def _announce(self, why: str):
+        try:
+            desc = self.centroider.describe()
+        except Exception as exc:  # describe() must never take the node down
+            desc = {"algorithm": self.get_parameter("algorithm").value, "error": str(exc)}
+        desc.update(reason=why, time_ns=time.time_ns(), sensor_grid=self.sensor.grid)
+        self._desc_pub.publish(String(data=json.dumps(desc, default=str)))
+        self.get_logger().info(f"centroider: {desc.get('algorithm')} ({why})")
+
+    def _on_sensor(self, msg: String):
+        try:
+            sensor = Sensor.from_json(msg.data)
+        except (SensorError, TypeError) as exc:
+            self.get_logger().error(f"ignoring an invalid sensor description: {exc}")
+            return
+        if sensor == self.sensor:
+            return
+        try:
+            centroider = self._build(self._settings(), sensor)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.get_logger().error(f"new sensor arrived but the algorithm cannot run on it: {exc}")
+            return
+        with self._lock:
+            self.sensor, self.layout, self.centroider = sensor, geometry.layout(sensor), centroider
+            self._last_stamp = None
+        self._announce("new sensor")
+
+    # -- frames ---------------------------------------------------------------------
+    def _reject(self, reason: str):
+        self.counters.rejected += 1
+        self.counters.last_reason = reason
+        self.get_logger().warning(f"frame rejected: {reason}", throttle_duration_sec=2.0)
+
+    def _on_frame(self, cdr: bytes):
+        self.counters.received += 1
+        try:
+            stamp_ns, _frame_id, encoding, image = bags.decode_image(cdr)
+        except Exception as exc:
+            self._reject(f"undecodable Image: {exc}")
+            return
+        if encoding not in ("mono16", "32FC1"):
+            self._reject(f"encoding {encoding!r}, expected mono16 or 32FC1")
+            return
+        with self._lock:
+            if image.shape != self.sensor.frame_shape:
+                self._reject(f"shape {image.shape}, the sensor expects {self.sensor.frame_shape}")
+                return
+            if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+                self._reject(f"stamp {stamp_ns} not after the previous {self._last_stamp}")
+                return
+            if self._last_stamp is not None:
+                period_ns = 1e9 / self.sensor.frame_rate_hz
+                self.counters.dropped += max(0, int(round((stamp_ns - self._last_stamp) / period_ns)) - 1)
+            self._last_stamp = stamp_ns
+            slopes = self.centroider.centroid(image)
+            grid = geometry.slopes_to_grid(slopes, self.layout)
+        self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
+        self.counters.processed += 1
+
+    def _log_counters(self):
+        c = self.counters
+        self.get_logger().info(
+            f"frames received {c.received}, processed {c.processed}, dropped {c.dropped}, "
+            f"rejected {c.rejected}" + (f" (last: {c.last_reason})" if c.rejected else ""))
+
+
+def main(args=None):
+    environment.configure()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CentroiderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,175 @@
+"""player_node: a bag's frames, truths and sensor description back onto the contract topics.
+
+Messages are published as the raw CDR stored in the bag (no decode), under the node's namespace
+with the last component of their recorded name (``/wfs/frame`` -> ``frame``). Pacing: the
+recorded rate (from the stamps), a fixed rate in Hz, or ``max``: as fast as the consumers keep
+up, i.e. the next frame goes out when every topic in ``wait_for`` has returned the previous
+frame's stamp (or after ``wait_timeout_s``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from .. import bags
+from . import environment, parameters, qos
+
+MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
+REPLAYED = ("frame", "true_slopes", "sensor")
+
+
+def parse_rate(text: str) -> float | None:
+    """'recorded' -> None, 'max' -> 0.0, a number -> Hz (> 0); ValueError otherwise."""
+    text = str(text).strip().lower()
+    if text == "recorded":
+        return None
+    if text == "max":
+        return 0.0
+    try:
+        hz = float(text)
+    except ValueError:
+        raise ValueError(f"rate must be 'recorded', 'max' or a number of Hz, got {text!r}") from None
+    if not hz > 0:
+        raise ValueError(f"rate must be > 0 Hz, got {hz}")
+    return hz
+
+
+class PlayerNode(Node):
+    def __init__(self, **kwargs):
+        kwargs.setdefault("namespace", "wfs")
+        super().__init__("player_node", **kwargs)
+        parameters.declare(self, "bag", "", "MCAP bag to play.", read_only=True)
+        parameters.declare(self, "rate", "recorded", "'recorded', 'max' or frames per second.")
+        parameters.declare(self, "wait_for", ["/cog/slopes"], "With rate 'max': slopes topics "
+                           "that must answer a frame before the next one is sent.")
+        parameters.declare(self, "wait_timeout_s", 1.0, "With rate 'max': longest wait for an "
+                           "answer.", low=0.001, high=60.0)
+        parameters.declare(self, "loop", False, "Start again at the end of the bag.")
+        parameters.declare(self, "start_delay_s", 1.0, "Wait for subscribers this long first.",
+                           low=0.0, high=60.0)
+        self.add_on_set_parameters_callback(self._validate)
+
+        path = self.get_parameter("bag").value
+        self.reader = bags.BagReader(path)   # BagError with a clear message if unusable
+        kinds = {t.rsplit("/", 1)[-1]: (t, ty) for t, (ty, _n) in self.reader.topics().items()}
+        missing = [k for k in ("frame",) if k not in kinds]
+        if missing:
+            raise bags.BagError(f"{path} has no frame topic (topics: {sorted(self.reader.topics())})")
+        self.sources = {kinds[k][0]: k for k in REPLAYED if k in kinds}
+        self.pubs = {k: self.create_publisher(MSG_CLASSES[kinds[k][1]], k, qos.for_topic(k))
+                     for k in REPLAYED if k in kinds}
+        self.published = {k: 0 for k in self.pubs}
+        self.answers: dict[str, int] = {}
+        self._answer = threading.Condition()
+        for topic in self.get_parameter("wait_for").value:
+            self.create_subscription(Image, topic, lambda cdr, t=topic: self._on_answer(t, cdr),
+                                     qos.SLOPES, raw=True)
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._play, name="player", daemon=True)
+        self._thread.start()
+
+    def _validate(self, params):
+        for p in params:
+            if p.name == "rate":
+                try:
+                    parse_rate(p.value)
+                except ValueError as exc:
+                    return parameters.refuse(str(exc))
+        return parameters.accept()
+
+    def _on_answer(self, topic, cdr):
+        try:
+            stamp = bags.decode_image(cdr)[0]
+        except Exception:
+            return
+        with self._answer:
+            self.answers[topic] = stamp
+            self._answer.notify_all()
+
+    def _wait_answers(self, stamp_ns: int):
+        topics = self.get_parameter("wait_for").value
+        timeout = self.get_parameter("wait_timeout_s").value
+        with self._answer:
+            self._answer.wait_for(lambda: all(self.answers.get(t, -1) >= stamp_ns for t in topics)
+                                  or self._stop.is_set(), timeout=timeout)
+
+    def _play(self):
+        time.sleep(self.get_parameter("start_delay_s").value)
+        try:
+            while not self._stop.is_set():
+                self._play_once()
+                if not self.get_parameter("loop").value:
+                    break
+        except bags.BagError as exc:
+            self.get_logger().error(f"stopped: {exc}")
+        self.get_logger().info(f"played {self.published}")
+        self.finished.set()
+
+    def _play_once(self):
+        t0 = time.monotonic()
+        first_stamp = None
+        sent = 0
+        for topic, _type, _log, publish_ns, cdr in self.reader.messages(list(self.sources)):
+            if self._stop.is_set():
+                return
+            kind = self.sources[topic]
+            rate = parse_rate(self.get_parameter("rate").value)
+            if kind == "frame":
+                stamp = bags.decode_image(cdr)[0]
+                if rate is None:
+                    first_stamp = stamp if first_stamp is None else first_stamp
+                    due = t0 + (stamp - first_stamp) * 1e-9
+                elif rate > 0:
+                    due = t0 + sent / rate
+                else:
+                    due = None
+                if due is not None:
+                    delay = due - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+            self.pubs[kind].publish(bytes(cdr))
+            self.published[kind] += 1
+            if kind == "frame":
+                sent += 1
+                if rate == 0.0 and self.get_parameter("wait_for").value:
+                    self._wait_answers(stamp)
+
+    def stop(self):
+        self._stop.set()
+        with self._answer:
+            self._answer.notify_all()
+        self._thread.join(timeout=5)
+
+
+def main(args=None):
+    environment.configure()
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = PlayerNode()
+        while rclpy.ok() and not node.finished.is_set():
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except bags.BagError as exc:
+        print(f"player_node: {exc}")
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

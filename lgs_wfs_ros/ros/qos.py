@@ -1,0 +1,38 @@
+"""QoS per topic of the contract (docs/conventions.md section 5).
+
+What may drop and what may not:
+- ``frame``: reliable, keep last 10. A slow subscriber can still lose frames (a reliable KEEP_LAST
+  writer overwrites what the reader has not taken); the centroider counts the gaps by stamp.
+- ``true_slopes`` and ``slopes``: reliable, keep last 100: small (28.8 kB), so a deep history
+  absorbs a slow recorder for ~0.14 s at 700 Hz.
+- ``sensor`` and ``centroider``: reliable, keep last 1, transient local, so a late joiner (the
+  recorder, a centroider started later) still gets the current description.
+"""
+
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+
+FRAME = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                   reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+SLOPES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+BY_NAME = {"frame": FRAME, "true_slopes": SLOPES, "slopes": SLOPES,
+           "sensor": LATCHED, "centroider": LATCHED}
+TYPES = {"frame": "sensor_msgs/msg/Image", "true_slopes": "sensor_msgs/msg/Image",
+         "slopes": "sensor_msgs/msg/Image", "sensor": "std_msgs/msg/String",
+         "centroider": "std_msgs/msg/String"}
+
+
+def for_topic(topic: str) -> QoSProfile:
+    """The contract's QoS for a topic name (its last component), FRAME if unknown."""
+    return BY_NAME.get(topic.rstrip("/").rsplit("/", 1)[-1], FRAME)
+
+
+def describe(qos: QoSProfile) -> dict:
+    """A plain dict of a profile, for bags (offered_qos_profiles) and logs."""
+    return {"history": qos.history.name.lower(), "depth": qos.depth,
+            "reliability": qos.reliability.name.lower(),
+            "durability": qos.durability.name.lower()}

@@ -1,0 +1,166 @@
+"""The centroider and recorder nodes on an isolated domain (in-process, one executor thread)."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+from lgs_wfs_ros import bags
+from lgs_wfs_ros.centroiding import make_centroider
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+from spotgen import spots
+
+pytestmark = pytest.mark.ros
+
+SMALL = Sensor(diameter_m=4.0, obstruction_m=0.5, n_subaps=8, frame_rate_hz=100.0)
+
+
+def small_frame(sensor, seed, dtype=np.uint16):
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(seed)
+    shift = rng.normal(0, 0.5, (lay.n_valid, 2))
+    stack = spots(shift, photons=1000.0, e=lay.e, offsets=np.linspace(-2, 2, 9), rng=rng)
+    return geometry.stack_to_frame(stack.astype(dtype), lay)
+
+
+class Rig:
+    """A frame/sensor publisher and a slopes/centroider listener around one node under test."""
+
+    def __init__(self, ros, sensor=SMALL):
+        from rclpy.node import Node
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import String
+        from lgs_wfs_ros.ros import qos
+
+        self.node = ros.add(Node("rig", namespace="wfs", context=ros.context))
+        self.frame_pub = self.node.create_publisher(Image, "/wfs/frame", qos.FRAME)
+        self.sensor_pub = self.node.create_publisher(String, "/wfs/sensor", qos.LATCHED)
+        self.sensor_pub.publish(String(data=sensor.to_json(seed=0)))
+        self.slopes, self.descriptions = {}, []
+        self.node.create_subscription(Image, "/wfs/slopes", self._on_slopes, qos.SLOPES, raw=True)
+        self.node.create_subscription(String, "/wfs/centroider",
+                                      lambda m: self.descriptions.append(json.loads(m.data)),
+                                      qos.LATCHED)
+
+    def _on_slopes(self, cdr):
+        stamp, _, enc, grid = bags.decode_image(cdr)
+        self.slopes[stamp] = grid.copy()
+
+    def send(self, frame, stamp_ns, encoding=None):
+        self.frame_pub.publish(bags.encode_image(frame, stamp_ns, encoding=encoding))
+
+
+@pytest.fixture
+def centroider(ros):
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    node = ros.add(CentroiderNode(context=ros.context))
+    rig = Rig(ros)
+    assert wait_for(lambda: node.sensor == SMALL, timeout=10)
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0, timeout=10)
+    assert wait_for(lambda: rig.descriptions, timeout=10)
+    return node, rig
+
+
+def set_param(ros, name, value):
+    """Set a parameter through the node's parameter service, as `ros2 param set` does."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    client_node = ros.add(Node(f"param_client_{time.monotonic_ns()}", context=ros.context))
+    client = AsyncParameterClient(client_node, "/wfs/centroider_node")
+    assert client.wait_for_services(timeout_sec=10)
+    future = client.set_parameters([Parameter(name, value=value)])
+    assert wait_for(future.done, timeout=10)
+    return future.result().results[0]
+
+
+def test_slopes_match_the_library(centroider):
+    node, rig = centroider
+    lay = geometry.layout(SMALL)
+    frames = [small_frame(SMALL, k) for k in range(5)]
+    for k, f in enumerate(frames):
+        rig.send(f, 1_000_000_000 + k * 10_000_000)
+        time.sleep(0.02)
+    assert wait_for(lambda: len(rig.slopes) == 5, timeout=10)
+    cog = make_centroider("cog", SMALL)
+    for k, f in enumerate(frames):
+        grid = rig.slopes[1_000_000_000 + k * 10_000_000]
+        assert grid.shape == (8, 8, 2) and np.isnan(grid[~lay.valid]).all()
+        np.testing.assert_allclose(geometry.grid_to_slopes(grid, lay), cog.centroid(f), atol=1e-5)
+    assert node.counters.processed == 5 and node.counters.dropped == 0
+
+
+def test_switch_algorithm_at_run_time_and_refusals(centroider, ros):
+    node, rig = centroider
+    frame = small_frame(SMALL, 1)
+    rig.send(frame, 10)
+    assert wait_for(lambda: 10 in rig.slopes)
+
+    result = set_param(ros, "algorithm", "wcog")
+    assert result.successful
+    assert wait_for(lambda: rig.descriptions[-1].get("algorithm") == "wcog")
+    rig.send(frame, 20)
+    assert wait_for(lambda: 20 in rig.slopes)
+    lay = geometry.layout(SMALL)
+    wcog = make_centroider("wcog", SMALL).centroid(frame)
+    np.testing.assert_allclose(geometry.grid_to_slopes(rig.slopes[20], lay), wcog, atol=1e-5)
+    assert not np.allclose(rig.slopes[10], rig.slopes[20], equal_nan=True)
+
+    bad = set_param(ros, "algorithm", "bogus")
+    assert not bad.successful and "bogus" in bad.reason
+    missing = set_param(ros, "model", "/nonexistent/model.onnx")
+    if node.get_parameter("algorithm").value == "wcog":
+        # model is only used by ann: switching to ann with it must be refused
+        refused = set_param(ros, "algorithm", "ann")
+        assert not refused.successful and "model" in refused.reason.lower()
+    assert missing.successful or "model" in missing.reason.lower()
+    assert node.get_parameter("algorithm").value == "wcog"
+    rig.send(frame, 30)
+    assert wait_for(lambda: 30 in rig.slopes)
+    np.testing.assert_allclose(geometry.grid_to_slopes(rig.slopes[30], lay), wcog, atol=1e-5)
+
+
+def test_bad_frames_are_counted_and_skipped(centroider):
+    node, rig = centroider
+    good = small_frame(SMALL, 2)
+    rig.send(good[:-16], 100)                                   # wrong size
+    rig.send(good.astype(np.float32)[..., None].repeat(2, -1), 200)   # 32FC2: wrong encoding
+    rig.send(good, 300)
+    rig.send(good, 300)                                          # repeated stamp
+    rig.send(good, 250)                                          # out of order
+    rig.send(good, 400)
+    assert wait_for(lambda: 400 in rig.slopes, timeout=10)
+    assert wait_for(lambda: node.counters.rejected == 4, timeout=5)
+    assert node.counters.processed == 2
+    assert sorted(rig.slopes) == [300, 400]
+
+
+def test_recorder_writes_a_readable_bag(ros, tmp_path):
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+
+    out = tmp_path / "rec.mcap"
+    ros.add(CentroiderNode(context=ros.context))
+    rig = Rig(ros)
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("frames", value=6),
+        Parameter("linger_s", value=1.0),
+        Parameter("topics", value=["/wfs/frame", "/wfs/sensor", "/wfs/slopes", "/wfs/centroider"])]))
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 2, timeout=10)
+    time.sleep(0.5)
+    frames = [small_frame(SMALL, k) for k in range(6)]
+    for k, f in enumerate(frames):
+        rig.send(f, 1000 + k)
+        time.sleep(0.02)
+    assert wait_for(lambda: rec.done, timeout=15)
+    reader = bags.BagReader(out)
+    topics = reader.topics()
+    assert topics["/wfs/frame"][1] == 6 and topics["/wfs/slopes"][1] == 6
+    assert topics["/wfs/sensor"][1] == 1
+    stamps, images = reader.images("/wfs/frame")
+    assert list(stamps) == [1000 + k for k in range(6)]
+    np.testing.assert_array_equal(images[3], frames[3])
