@@ -202,16 +202,21 @@ def main(args=None):
     environment.configure()
     rclpy.init(args=args)
     node = None
+    code = 0
     try:
         node = CentroiderNode()
         rclpy.spin(node)
+    except (ValueError, SensorError) as exc:
+        print(f"centroider_node: cannot start: {exc}", flush=True)
+        code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return code
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
