@@ -594,3 +594,90 @@ def test_reads_bags_written_by_the_mcap_library(tmp_path, chunked):
         st, arr = r.images("/cam")
     np.testing.assert_array_equal(st, np.arange(5))
     np.testing.assert_array_equal(arr, frames)
+
+
+def _consistent(path):
+    """The bag opens strictly; its statistics, rosbag2 metadata and a full scan agree; the
+    frames are 0..n-1 without gaps. Returns n."""
+    with BagReader(path) as r:
+        assert r.complete
+        counts = r.topics()
+        st, arr = r.images(FRAME)
+        meta = yaml.safe_load(dict(r.metadata())["rosbag2"]["serialized_metadata"])
+    n = len(st)
+    assert counts[FRAME][1] == n and meta["message_count"] == n
+    np.testing.assert_array_equal(st, np.arange(n))
+    np.testing.assert_array_equal(arr[:, 0, 0], np.arange(n).astype(np.uint16))
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        assert sum(1 for _ in make_reader(f).iter_messages()) == n
+    return n
+
+
+def test_keyboard_interrupt_inside_writes_leaves_a_consistent_bag(tmp_path, monkeypatch):
+    """An exception in the middle of writev (as a SIGINT handler raising KeyboardInterrupt
+    would) rolls the file back to its last complete chunk; close() then finishes it."""
+    from lgs_wfs_ros.bags import writer as writer_mod
+    real = os.writev
+    calls = {"n": 0}
+
+    def flaky(fd, parts):
+        calls["n"] += 1
+        if calls["n"] == 6:
+            real(fd, [parts[0][: len(parts[0]) // 2]])       # half a chunk reaches the disk
+            raise KeyboardInterrupt
+        return real(fd, parts)
+
+    monkeypatch.setattr(writer_mod.os, "writev", flaky)
+    p = tmp_path / "int.mcap"
+    w = BagWriter(p, chunk_size=20_000, compression=None)
+    w.add_topic(FRAME, "sensor_msgs/msg/Image")
+    with pytest.raises(KeyboardInterrupt):
+        for i in range(1000):
+            w.write(FRAME, encode_image(np.full((40, 40), i, np.uint16), i), i, i)
+    w.close()
+    monkeypatch.setattr(writer_mod.os, "writev", real)
+    n = _consistent(p)
+    assert 0 < n < w.message_count
+
+
+@pytest.mark.parametrize("delay", [0.3, 0.45, 0.6, 0.75])
+def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, delay):
+    """Python's default SIGINT handler raises KeyboardInterrupt at any bytecode, also inside
+    write(); the recorder pattern `try: ... finally: close()` must still give a complete bag."""
+    p = tmp_path / "sigint.mcap"
+    script = textwrap.dedent(f"""
+        import numpy as np
+        from lgs_wfs_ros.bags import BagWriter, encode_image
+        w = BagWriter({str(p)!r}, chunk_size=30_000, compression="lz4")
+        try:
+            w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")
+            i = 0
+            print("ready", flush=True)
+            while True:
+                w.write("/wfs/frame", encode_image(np.full((40, 40), i % 65535, np.uint16), i), i, i)
+                i += 1
+        except KeyboardInterrupt:
+            pass
+        finally:
+            w.close()
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    import time
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=30) == 0
+    assert _consistent(p) > 0
+
+
+def test_many_chunks(tmp_path):
+    """More chunk indexes than writev takes buffers in one call (IOV_MAX, 1024 on Linux)."""
+    p = tmp_path / "many.mcap"
+    with BagWriter(p, chunk_size=1, compression=None) as w:
+        w.add_topic(FRAME, "sensor_msgs/msg/Image")
+        for i in range(2100):
+            w.write(FRAME, encode_image(np.full((1, 1), i, np.uint16), i), i, i)
+    assert _consistent(p) == 2100
+    with BagReader(p) as r:
+        assert r._summary["stats"]["chunks"] == 2100

@@ -32,6 +32,12 @@ from .schema import full_type, message_definition, qos_profile, qos_yaml, to_yam
 LIBRARY = "lgs_wfs_ros bags 0.1 (python)"
 ROS_DISTRO = "jazzy"
 _MAX_U64 = 2**64 - 1
+try:
+    _IOV_MAX = min(os.sysconf("SC_IOV_MAX"), 1024)     # writev's limit on buffers per call
+except (AttributeError, ValueError, OSError):
+    _IOV_MAX = 16
+if _IOV_MAX <= 0:
+    _IOV_MAX = 16
 
 
 def _compressor(kind, level, threads):
@@ -89,22 +95,20 @@ class BagWriter:
             raise BagExistsError(f"{self.path} exists; refusing to overwrite it (pass overwrite=True)") from None
         except OSError as err:
             raise BagError(f"cannot create {self.path}: {err.strerror}") from None
-        self._offset = 0          # bytes in the file (worker side)
         self._closed = False
         self._failed = None       # _Failed once the file was closed after an error
         self._reported = False    # that failure was raised to the caller
         self._schemas = {}        # type -> schema id
         self._topics = {}         # topic -> dict(id, type, qos)
-        self._counts = {}         # channel id -> messages accepted
-        self._saved = 0           # messages in complete chunks on disk (worker side)
-        self._start = None
-        self._end = 0
+        self._accepted = 0        # messages accepted by write()
         self._schema_recs = []
         self._channel_recs = []
-        self._chunk_index_recs = []
+        # One entry per chunk on disk, appended as the single commit step after its write:
+        # (chunk index record, message count, start, end, {channel: count}).
+        self._chunks = []
         self._metadata_index_recs = []
-        self._chunk_count = 0
-        self._reset_chunk()
+        self._parts = []          # open chunk: (message prefix, data) tuples, one append each
+        self._chunk_bytes = 0
         self._queue = None
         if background:
             self._queue = queue.Queue(maxsize=int(queue_chunks))
@@ -144,7 +148,6 @@ class BagWriter:
         self._channel_recs.append(rec)
         recs.append(rec)
         self._topics[topic] = {"id": cid, "type": tname, "qos": profiles}
-        self._counts[cid] = 0
         self._submit(self._write, recs)
         return cid
 
@@ -163,14 +166,12 @@ class BagWriter:
         if not (0 <= log <= _MAX_U64 and 0 <= pub <= _MAX_U64):
             raise ValueError(f"times must be in [0, 2**64) ns, got log {log}, publish {pub}")
         data = cdr if isinstance(cdr, bytes) else bytes(cdr)
-        self._parts.append(fmt.message_prefix(cid, int(sequence) & 0xFFFFFFFF, log, pub, len(data)))
-        self._parts.append(data)
-        self._index.setdefault(cid, []).append((log, self._chunk_bytes))
-        self._chunk_bytes += fmt.MESSAGE_PREFIX.size + len(data)
-        self._chunk_n += 1
-        self._chunk_start = log if self._chunk_start is None else min(self._chunk_start, log)
-        self._chunk_end = max(self._chunk_end, log)
-        self._counts[cid] += 1
+        prefix = fmt.message_prefix(cid, int(sequence) & 0xFFFFFFFF, log, pub, len(data))
+        # one list append is the commit: an exception (e.g. KeyboardInterrupt) before or after it
+        # leaves the open chunk consistent; offsets and indexes are derived when it is stored
+        self._parts.append((prefix, data))
+        self._accepted += 1
+        self._chunk_bytes += len(prefix) + len(data)
         if self._chunk_bytes >= self._chunk_size:
             self._submit_chunk()
 
@@ -186,12 +187,30 @@ class BagWriter:
     @property
     def message_count(self):
         """Messages accepted so far (including those not yet on disk)."""
-        return sum(self._counts.values())
+        return self._accepted
+
+    @property
+    def saved_count(self):
+        """Messages in complete chunks on disk."""
+        return sum(c[1] for c in self._chunks)
 
     @property
     def topics(self):
-        """topic -> (type, count) of what was accepted so far."""
-        return {t: (v["type"], self._counts[v["id"]]) for t, v in self._topics.items()}
+        """topic -> (type, messages on disk) so far."""
+        counts = self._saved_counts()
+        return {t: (v["type"], counts.get(v["id"], 0)) for t, v in self._topics.items()}
+
+    def _saved_counts(self):
+        counts = {}
+        for c in self._chunks:
+            for cid, n in c[4].items():
+                counts[cid] = counts.get(cid, 0) + n
+        return counts
+
+    def _saved_span(self):
+        if not self._chunks:
+            return 0, 0
+        return min(c[2] for c in self._chunks), max(c[3] for c in self._chunks)
 
     def close(self):
         """Write the last chunk, the rosbag2 metadata, the summary and the footer. Idempotent."""
@@ -221,13 +240,14 @@ class BagWriter:
 
     def rosbag2_metadata_yaml(self):
         """The ``serialized_metadata`` text (rosbag2 BagMetadata, version 9)."""
-        start = self._start or 0
-        duration = max(self._end - start, 0) if self._start is not None else 0
-        count = self.message_count
+        start, end = self._saved_span()
+        duration = end - start
+        counts = self._saved_counts()
+        count = sum(counts.values())
         topics = [{"topic_metadata": {"name": t, "type": v["type"], "serialization_format": "cdr",
                                       "offered_qos_profiles": v["qos"],
                                       "type_description_hash": type_hash(v["type"])},
-                   "message_count": self._counts[v["id"]]} for t, v in self._topics.items()]
+                   "message_count": counts.get(v["id"], 0)} for t, v in self._topics.items()]
         doc = {"version": 9, "storage_identifier": "mcap",
                "duration": {"nanoseconds": duration},
                "starting_time": {"nanoseconds_since_epoch": start},
@@ -249,13 +269,14 @@ class BagWriter:
         if self._failed is None:
             return
         strerror, errno, state = self._failed.args
-        lost = self.message_count - self._saved
+        kept = self.saved_count
+        lost = self.message_count - kept
         self._reported = True
         raise BagWriteError(
             f"writing {self.path} failed: {strerror} (errno {errno}). The file was {state}: "
-            f"{self._saved} messages are safe, {lost} were lost. Run `lgs-wfs recover {self.path} "
+            f"{kept} messages are safe, {lost} were lost. Run `lgs-wfs recover {self.path} "
             f"OUT.mcap` (on a disk with space) for a complete bag with summary.",
-            messages_kept=self._saved, messages_lost=lost)
+            messages_kept=kept, messages_lost=lost)
 
     def _submit(self, fn, *args):
         if self._queue is None:
@@ -268,20 +289,11 @@ class BagWriter:
             self._raise_failure()
             self._queue.put((fn, args))
 
-    def _reset_chunk(self):
-        self._parts = []
-        self._index = {}
-        self._chunk_bytes = 0
-        self._chunk_n = 0
-        self._chunk_start = None
-        self._chunk_end = 0
-
     def _submit_chunk(self):
-        if self._chunk_n == 0:
+        if not self._parts:
             return
-        snap = (self._parts, self._index, self._chunk_n, self._chunk_start, self._chunk_end)
-        self._reset_chunk()
-        self._submit(self._store_chunk, *snap)
+        parts, self._parts, self._chunk_bytes = self._parts, [], 0
+        self._submit(self._store_chunk, parts)
 
     # -- worker side (or inline) --------------------------------------------------------
     def _work(self):
@@ -298,18 +310,29 @@ class BagWriter:
                         pass
                     except Exception as err:      # never let the worker die silently
                         try:
-                            self._fail(OSError(getattr(err, "errno", None) or 0, f"{type(err).__name__}: {err}"))
+                            self._fail(OSError(getattr(err, "errno", None) or 0, f"{type(err).__name__}: {err}"),
+                                       self._tell())
                         except _Failed:
                             pass
             finally:
                 self._queue.task_done()
 
-    def _store_chunk(self, parts, index, n, start, end):
-        records = b"".join(parts)
+    def _store_chunk(self, parts):
+        """Compress and write one chunk and its message indexes; then commit it to _chunks."""
+        index, counts, pos = {}, {}, 0
+        start, end = None, 0
+        for prefix, data in parts:
+            cid, _, log = fmt.MESSAGE_PREFIX.unpack(prefix)[2:5]
+            index.setdefault(cid, []).append((log, pos))
+            counts[cid] = counts.get(cid, 0) + 1
+            start = log if start is None else min(start, log)
+            end = max(end, log)
+            pos += len(prefix) + len(data)
+        records = b"".join([p for pair in parts for p in pair])
         crc = zlib.crc32(records) if self._crc else 0
         data = self._compress(records) if self._compress else records
         prefix = fmt.chunk_prefix(start, end, len(records), crc, self._comp_name, len(data))
-        chunk_offset = self._offset
+        chunk_offset = self._tell()
         chunk_len = len(prefix) + len(data)
         mi_offsets, mi_recs, pos = {}, [], chunk_offset + chunk_len
         for cid, pairs in index.items():
@@ -317,70 +340,75 @@ class BagWriter:
             mi_offsets[cid] = pos
             pos += len(rec)
             mi_recs.append(rec)
+        entry = (fmt.chunk_index(start, end, chunk_offset, chunk_len, mi_offsets, pos - chunk_offset - chunk_len,
+                                 self._comp_name, len(data), len(records)),
+                 len(parts), start, end, counts)
         self._write([prefix, data] + mi_recs)
-        self._saved += n
-        self._chunk_count += 1
-        self._start = start if self._start is None else min(self._start, start)
-        self._end = max(self._end, end)
-        self._chunk_index_recs.append(fmt.chunk_index(start, end, chunk_offset, chunk_len, mi_offsets,
-                                                      pos - chunk_offset - chunk_len, self._comp_name,
-                                                      len(data), len(records)))
+        self._chunks.append(entry)
 
     def _finish(self):
         if self._rosbag2:
             meta = fmt.metadata("rosbag2", {"serialized_metadata": self.rosbag2_metadata_yaml()})
-            self._metadata_index_recs.append(fmt.metadata_index(self._offset, len(meta), "rosbag2"))
+            rec = fmt.metadata_index(self._tell(), len(meta), "rosbag2")
             self._write([meta])
+            self._metadata_index_recs.append(rec)
         self._write([fmt.data_end(0)])
         self._write(self._summary())
         if self._fsync:
             try:
                 os.fsync(self._fd)
             except OSError as err:
-                self._fail(err)
+                self._fail(err, self._tell())
 
     def _summary(self):
-        offsets, groups, pos = [], [], self._offset
-        counts = {v["id"]: self._counts[v["id"]] for v in self._topics.values()}
-        stats = fmt.statistics(self._saved, len(self._schemas), len(self._topics),
-                               len(self._metadata_index_recs), self._chunk_count,
-                               self._start or 0, self._end, counts)
+        summary_start = pos = self._tell()
+        offsets, groups = [], []
+        counts = self._saved_counts()
+        counts = {v["id"]: counts.get(v["id"], 0) for v in self._topics.values()}
+        start, end = self._saved_span()
+        stats = fmt.statistics(self.saved_count, len(self._schemas), len(self._topics),
+                               len(self._metadata_index_recs), len(self._chunks), start, end, counts)
         for op, recs in ((fmt.OP_SCHEMA, self._schema_recs), (fmt.OP_CHANNEL, self._channel_recs),
-                         (fmt.OP_STATISTICS, [stats]), (fmt.OP_CHUNK_INDEX, self._chunk_index_recs),
+                         (fmt.OP_STATISTICS, [stats]), (fmt.OP_CHUNK_INDEX, [c[0] for c in self._chunks]),
                          (fmt.OP_METADATA_INDEX, self._metadata_index_recs)):
             if recs:
                 size = sum(len(r) for r in recs)
                 offsets.append(fmt.summary_offset(op, pos, size))
                 groups += recs
                 pos += size
-        body = groups + offsets + [fmt.footer_prefix(self._offset, pos)]
+        body = groups + offsets + [fmt.footer_prefix(summary_start, pos)]
         crc = 0
         for part in body:
             crc = zlib.crc32(part, crc)
         return body + [crc.to_bytes(4, "little"), fmt.MAGIC]
 
-    def _write(self, parts):
-        """Write whole records with writev; on OSError cut back and raise _Failed."""
-        parts = [p for p in parts if len(p)]
-        total = sum(len(p) for p in parts)
-        try:
-            done = 0
-            while done < total:
-                n = os.writev(self._fd, parts)
-                done += n
-                if done < total:          # partial write: drop what was written
-                    while n and n >= len(parts[0]):
-                        n -= len(parts[0])
-                        parts.pop(0)
-                    if n:
-                        parts[0] = memoryview(parts[0])[n:]
-        except OSError as err:
-            self._fail(err)
-        self._offset += total
+    def _tell(self):
+        return os.lseek(self._fd, 0, os.SEEK_CUR)
 
-    def _fail(self, err):
-        """Truncate to the last complete group, try a minimal valid ending, close the file."""
-        good = self._offset
+    def _write(self, parts):
+        """Write whole records with writev. On OSError cut back and raise _Failed; on any other
+        exception (KeyboardInterrupt mid-write) cut back to the start of this group, re-raise."""
+        parts = [p for p in parts if len(p)]
+        begin = self._tell()
+        try:
+            i = 0
+            while i < len(parts):
+                n = os.writev(self._fd, parts[i:i + _IOV_MAX])
+                while i < len(parts) and n >= len(parts[i]):     # drop what was written
+                    n -= len(parts[i])
+                    i += 1
+                if n:                                             # partial write inside a part
+                    parts[i] = memoryview(parts[i])[n:]
+        except OSError as err:
+            self._fail(err, begin)
+        except BaseException:
+            os.ftruncate(self._fd, begin)
+            os.lseek(self._fd, begin, os.SEEK_SET)
+            raise
+
+    def _fail(self, err, good):
+        """Truncate to the last complete group (offset ``good``), try a minimal valid ending,
+        close the file, raise _Failed."""
         ending_ok = False
         try:
             os.ftruncate(self._fd, good)
