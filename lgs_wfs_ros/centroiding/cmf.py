@@ -60,8 +60,8 @@ def design(template: np.ndarray, dither: float = 0.02, constrained: bool = True,
                  integer_shift(template, 0, c), integer_shift(template, 0, -c)]
         m[0] += [c, -c, 0.0, 0.0]
         m[1] += [0.0, 0.0, c, -c]
-    a = np.stack([col.reshape(n, p * p) for col in cols], axis=2)
-    return a, np.array(m)
+    at = np.stack([col.reshape(n, p * p) for col in cols], axis=1)      # (n, k, pp)
+    return np.swapaxes(at, 1, 2), np.array(m)
 
 
 def solve_filter(a: np.ndarray, m: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,16 +75,25 @@ def solve_filter(a: np.ndarray, m: np.ndarray, var: np.ndarray) -> tuple[np.ndar
     Returns:
         ``R (n, 2, pp)`` and ``ok (n,)``: True where ``R A = M`` holds (to 1e-6).
     """
-    atw = np.swapaxes(a, 1, 2) / var[:, None, :]                  # (n, k, pp)
+    at = np.swapaxes(a, 1, 2)                                      # (n, k, pp), a view
+    atw = at / var[:, None, :]
     g = atw @ a                                                    # (n, k, k)
-    # Scale columns to unit diagonal before the pseudo-inverse (conditioning).
-    d = np.sqrt(np.clip(np.einsum("nkk->nk", g), 1e-300, None))
+    # Scale to unit diagonal (conditioning); singular subapertures (e.g. an empty
+    # reference) get the pseudo-inverse.
+    d = np.sqrt(np.einsum("nkk->nk", g))
+    good = np.all(d > 0, axis=1) & np.all(np.isfinite(g), axis=(1, 2))
+    d = np.where(good[:, None], d, 1.0)
     gs = g / d[:, :, None] / d[:, None, :]
-    gi = np.linalg.pinv(gs, rcond=1e-12, hermitian=True) / d[:, :, None] / d[:, None, :]
+    gs[~good] = np.eye(g.shape[1])
+    try:
+        gi = np.linalg.inv(gs)
+    except np.linalg.LinAlgError:
+        gi = np.linalg.pinv(gs, rcond=1e-12, hermitian=True)
+    gi = gi / d[:, :, None] / d[:, None, :]
     r = (m @ gi) @ atw                                             # (n, 2, pp)
     resid = np.abs(r @ a - m).max(axis=(1, 2))
     scale = np.abs(m).max()
-    ok = np.isfinite(resid) & (resid <= 1e-6 * scale)
+    ok = good & np.isfinite(resid) & (resid <= 1e-6 * scale)
     return r, ok
 
 

@@ -70,12 +70,13 @@ def fourier_shift(stack: np.ndarray, shift) -> np.ndarray:
     f = np.fft.rfft2(stack)
     ky = np.fft.fftfreq(p)
     kx = np.fft.rfftfreq(q)
-    ramp = np.exp(-2j * np.pi * (kx[None, None, :] * shift[:, 0, None, None]
-                                 + ky[None, :, None] * shift[:, 1, None, None]))
-    if p % 2 == 0:
-        ramp[:, p // 2, :] = ramp[:, p // 2, :].real
+    ry = np.exp(-2j * np.pi * ky[None, :] * shift[:, 1, None])           # (n, p)
+    rx = np.exp(-2j * np.pi * kx[None, :] * shift[:, 0, None])           # (n, q//2+1)
+    if p % 2 == 0:                      # Nyquist: keep the real (cosine) part of the ramp
+        ry[:, p // 2] = ry[:, p // 2].real
     if q % 2 == 0:
-        ramp[:, :, -1] = ramp[:, :, -1].real
+        rx[:, -1] = rx[:, -1].real
+    ramp = ry[:, :, None] * rx[:, None, :]
     return np.fft.irfft2(f * ramp, s=(p, q))
 
 
