@@ -1,0 +1,168 @@
+"""ONNX runner: metadata contract, normalisation, output scale and frame, conditioning,
+model lookup and clear errors; models are tiny graphs built here with onnx.helper."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from lgs_wfs_ros.centroiding import make_centroider
+from lgs_wfs_ros.centroiding.ann import resolve_model
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+from spotgen import sodium_line, spots
+
+SENSOR = Sensor()
+LAY = geometry.layout(SENSOR)
+N = LAY.n_valid
+
+
+def cog_weights(p=16):
+    """``(p*p, 2)``: sum-normalised pixels @ W = centre of gravity from (p-1)/2."""
+    y, x = np.indices((p, p), dtype=np.float32) - (p - 1) / 2
+    return np.stack([x.ravel(), y.ravel()], axis=1)
+
+
+def build(path, weights, meta, cond_width=None, input_name="pixels", batch="N", width=None):
+    """Linear model ``out = pixels @ weights (+ e @ C)``, metadata JSON-encoded."""
+    width = weights.shape[0] if width is None else width
+    inputs = [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [batch, width])]
+    inits = [numpy_helper.from_array(weights.astype(np.float32), "W")]
+    nodes = [helper.make_node("MatMul", [input_name, "W"], ["lin"])]
+    if cond_width:
+        inputs.append(helper.make_tensor_value_info("e", TensorProto.FLOAT, [batch, cond_width]))
+        c = np.zeros((cond_width, 2), np.float32)
+        c[0, 0] = c[1, 1] = 1.0
+        if cond_width > 2:
+            c[2, 0] = 10.0
+        inits.append(numpy_helper.from_array(c, "C"))
+        nodes += [helper.make_node("MatMul", ["e", "C"], ["ec"]), helper.make_node("Add", ["lin", "ec"], ["out"])]
+    else:
+        nodes.append(helper.make_node("Identity", ["lin"], ["out"]))
+    graph = helper.make_graph(nodes, "g", inputs,
+                              [helper.make_tensor_value_info("out", TensorProto.FLOAT, [batch, 2])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in meta.items():
+        model.metadata_props.add(key=f"lgs_wfs.{k}", value=json.dumps(v))
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+META = {"pixels": 16, "detector": "any", "input_norm": "sum", "output_scale": 1.0,
+        "output_frame": "detector", "conditioning": "none", "training": {"note": "test"}}
+
+
+def stack(seed=0, detector="cartesian"):
+    rng = np.random.default_rng(seed)
+    off, w = sodium_line(3.0, 11)
+    e = LAY.e if detector == "cartesian" else np.tile([1.0, 0.0], (N, 1))
+    return rng.poisson(spots(rng.uniform(-1, 1, (N, 2)), sigma=0.6, e=e, offsets=off, weights=w)).astype(np.float32)
+
+
+def test_linear_model_reproduces_cog(tmp_path):
+    path = build(tmp_path / "cog.onnx", cog_weights(), META)
+    c = make_centroider("ann", SENSOR, model=str(path))
+    st = stack()
+    np.testing.assert_allclose(c.centroid(st), make_centroider("cog", SENSOR).centroid(st), atol=1e-5)
+    d = c.describe()
+    json.dumps(d)
+    assert d["model_path"] == str(path) and d["model_metadata"]["training"] == {"note": "test"}
+    assert c.session.get_session_options().intra_op_num_threads == 1
+
+
+def test_output_scale_and_no_normalisation(tmp_path):
+    st = stack(1)
+    tot = st.reshape(N, -1).sum(1)
+    # input_norm "none": the model sees raw counts; here it divides by a constant 1000
+    path = build(tmp_path / "raw.onnx", cog_weights() / 1000.0, dict(META, input_norm="none", output_scale=2.0))
+    out = make_centroider("ann", SENSOR, model=str(path)).centroid(st)
+    np.testing.assert_allclose(out, make_centroider("cog", SENSOR).centroid(st) * tot[:, None] / 1000 * 2, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("detector", ["cartesian", "polar"])
+def test_local_output_frame_is_rotated(tmp_path, detector):
+    sensor = SENSOR.replace(detector=detector)
+    st = stack(2, detector)
+    path = build(tmp_path / "loc.onnx", cog_weights(), dict(META, output_frame="local"))
+    out = make_centroider("ann", sensor, model=str(path)).centroid(st)
+    cog_pixel_axes = make_centroider("cog", SENSOR).centroid(st)     # block pixel axes
+    np.testing.assert_allclose(out, geometry.local_to_detector(cog_pixel_axes, LAY.e), atol=1e-5)
+    # "detector" output on a polar sensor: the model's numbers are used as they are
+    path2 = build(tmp_path / "det.onnx", cog_weights(), META)
+    out2 = make_centroider("ann", sensor, model=str(path2)).centroid(st)
+    np.testing.assert_allclose(out2, cog_pixel_axes, atol=1e-5)
+
+
+@pytest.mark.parametrize("cond, width", [("e", 2), ("e_r", 3)])
+def test_conditioning_input_gets_e(tmp_path, cond, width):
+    path = build(tmp_path / "c.onnx", np.zeros((256, 2)), dict(META, conditioning=cond), cond_width=width)
+    out = make_centroider("ann", SENSOR, model=str(path)).centroid(stack(3))
+    expect = np.array(LAY.e, dtype=float)
+    if cond == "e_r":
+        expect[:, 0] += 10 * LAY.r_m / 15.0
+    np.testing.assert_allclose(out, expect, atol=1e-5)
+
+
+def test_bad_subapertures_nan(tmp_path):
+    path = build(tmp_path / "cog.onnx", cog_weights(), META)
+    st = stack(4)
+    st[5, 3, 3] = np.nan
+    st[6] = 0
+    out = make_centroider("ann", SENSOR, model=str(path)).centroid(st)
+    assert np.isnan(out[[5, 6]]).all() and np.isfinite(np.delete(out, [5, 6], axis=0)).all()
+
+
+def test_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="not found"):
+        make_centroider("ann", SENSOR, model=str(tmp_path / "missing.onnx"))
+    with pytest.raises(ValueError, match="not found"):
+        make_centroider("ann", SENSOR, model="no_such_model_name")
+    bad = tmp_path / "corrupt.onnx"
+    bad.write_bytes(b"\x08\x01garbage" * 50)
+    with pytest.raises(ValueError, match="cannot load"):
+        make_centroider("ann", SENSOR, model=str(bad))
+    p8 = build(tmp_path / "p8.onnx", cog_weights(8), dict(META, pixels=8))
+    with pytest.raises(ValueError, match="8 x 8"):
+        make_centroider("ann", SENSOR, model=str(p8))
+    lie = build(tmp_path / "lie.onnx", cog_weights(8), META)          # says 16, takes 64 values
+    with pytest.raises(ValueError, match="pixel-count mismatch"):
+        make_centroider("ann", SENSOR, model=str(lie))
+    pol = build(tmp_path / "pol.onnx", cog_weights(), dict(META, detector="polar"))
+    with pytest.raises(ValueError, match="polar detector"):
+        make_centroider("ann", SENSOR, model=str(pol))
+    make_centroider("ann", SENSOR.replace(detector="polar"), model=str(pol))   # fine
+    nometa = build(tmp_path / "nometa.onnx", cog_weights(), {k: v for k, v in META.items() if k != "pixels"})
+    with pytest.raises(ValueError, match="lgs_wfs.pixels"):
+        make_centroider("ann", SENSOR, model=str(nometa))
+    badnorm = build(tmp_path / "badnorm.onnx", cog_weights(), dict(META, input_norm="max"))
+    with pytest.raises(ValueError, match="input_norm"):
+        make_centroider("ann", SENSOR, model=str(badnorm))
+    nocond = build(tmp_path / "nocond.onnx", cog_weights(), dict(META, conditioning="e"))
+    with pytest.raises(ValueError, match="conditioning"):
+        make_centroider("ann", SENSOR, model=str(nocond))
+    fixed = build(tmp_path / "fixed.onnx", cog_weights(), META, batch=7)
+    with pytest.raises(ValueError, match="fixed batch"):
+        make_centroider("ann", SENSOR, model=str(fixed))
+
+
+def test_model_lookup_by_name(tmp_path, monkeypatch):
+    d = tmp_path / "models"
+    d.mkdir()
+    build(d / "tiny_cog.onnx", cog_weights(), META)
+    monkeypatch.setenv("LGS_WFS_MODELS", str(d))
+    assert resolve_model("tiny_cog") == d / "tiny_cog.onnx"
+    assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
+    c = make_centroider("ann", SENSOR, model="tiny_cog")
+    assert c.path == d / "tiny_cog.onnx"
+    # default name: a clear error when no ann_pupil model is installed anywhere
+    monkeypatch.setenv("LGS_WFS_MODELS", str(tmp_path / "empty"))
+    from lgs_wfs_ros.centroiding.ann import model_dirs
+    if any((d / "ann_pupil.onnx").is_file() for d in model_dirs()):
+        assert resolve_model("ann_pupil").name == "ann_pupil.onnx"
+    else:
+        with pytest.raises(ValueError, match="'ann_pupil' not found"):
+            make_centroider("ann", SENSOR)
