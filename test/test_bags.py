@@ -641,14 +641,18 @@ def test_keyboard_interrupt_inside_writes_leaves_a_consistent_bag(tmp_path, monk
     assert 0 < n < w.message_count
 
 
-@pytest.mark.parametrize("delay", [0.3, 0.45, 0.6, 0.75])
-def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, delay):
+@pytest.mark.parametrize("sig,delay", [(signal.SIGINT, 0.3), (signal.SIGINT, 0.55), (signal.SIGINT, 0.8),
+                                       (signal.SIGTERM, 0.4), (signal.SIGTERM, 0.7)])
+def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, sig, delay):
     """Python's default SIGINT handler raises KeyboardInterrupt at any bytecode, also inside
-    write(); the recorder pattern `try: ... finally: close()` must still give a complete bag."""
+    write() (SIGTERM here gets a handler raising SystemExit, as a recorder would install); the
+    pattern `try: ... finally: close()` must still give a complete bag."""
     p = tmp_path / "sigint.mcap"
     script = textwrap.dedent(f"""
+        import signal, sys
         import numpy as np
         from lgs_wfs_ros.bags import BagWriter, encode_image
+        signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))
         w = BagWriter({str(p)!r}, chunk_size=30_000, compression="lz4")
         try:
             w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")
@@ -657,7 +661,7 @@ def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, delay):
             while True:
                 w.write("/wfs/frame", encode_image(np.full((40, 40), i % 65535, np.uint16), i), i, i)
                 i += 1
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemExit):
             pass
         finally:
             w.close()
@@ -666,7 +670,7 @@ def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, delay):
     assert proc.stdout.readline().strip() == "ready"
     import time
     time.sleep(delay)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     assert proc.wait(timeout=30) == 0
     assert _consistent(p) > 0
 
