@@ -171,6 +171,10 @@ def test_round_trip_images_and_strings(tmp_path, background):
         s = r.summary()
         assert s["message_count"] == 41 and s["start_ns"] == T0 - 5 and s["end_ns"] == stamps[-1] + 2000
         assert s["topics"][FRAME]["count"] == 20
+        assert s["types"] == ["sensor_msgs/msg/Image", "std_msgs/msg/String"]
+        streamed = list(r.iter_images(TRUTH))
+        assert [m[0] for m in streamed] == list(stamps) and streamed[0][1:3] == ("wfs", "32FC2")
+        np.testing.assert_array_equal(streamed[7][3], slopes[7])
 
 
 def test_schema_text_has_full_definitions_with_separators(tmp_path):

@@ -352,7 +352,7 @@ class BagReader:
         return self._scan()["metadata"]
 
     def summary(self):
-        """dict: path, size_bytes, complete, profile, library, message_count, start_ns, end_ns,
+        """dict: path, size_bytes, complete, types, profile, library, message_count, start_ns, end_ns,
         duration_s, topics {topic: {type, count, rate_hz}}, problems. rate_hz is count - 1 over
         the topic's first-to-last log time when scanned, else over the bag's whole span (from
         the summary, which has no per-topic times)."""
@@ -370,6 +370,7 @@ class BagReader:
                 rate = (n - 1) / ((b - a) / 1e9) if n > 1 and b > a else 0.0
                 topics[t] = {"type": ty, "count": n, "rate_hz": rate}
         return {"path": str(self.path), "size_bytes": self.size, "complete": self.complete,
+                "types": sorted({v["type"] for v in topics.values()}),
                 "profile": self.profile, "library": self.library,
                 "message_count": sum(v["count"] for v in topics.values()),
                 "start_ns": start, "end_ns": end, "duration_s": max(end - start, 0) / 1e9,
@@ -411,6 +412,18 @@ class BagReader:
         if not arrays:
             return np.zeros(0, np.int64), np.zeros((0, 0, 0))
         return np.asarray(stamps, np.int64), np.stack(arrays)
+
+    def iter_images(self, topic):
+        """Stream an Image topic: yield (stamp_ns, frame_id, encoding, array) one message at a
+        time (arrays are read-only views, valid while the reader is open), for bags too big
+        to hold in memory."""
+        self._check_topics({topic})
+        self._check_type(topic, IMAGE)
+        for _, _, log, _, mv in self._iter([topic]):
+            try:
+                yield decode_image(mv)
+            except ValueError as err:
+                raise self._err(f"{topic}: undecodable Image at log time {log}: {err}") from None
 
     def strings(self, topic):
         """[(log_time_ns, text)] of a String topic (String has no header stamp)."""
