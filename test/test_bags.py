@@ -578,6 +578,21 @@ def test_full_tmpfs_gives_enospc_and_a_readable_bag(tmp_path):
         subprocess.run(["umount", str(disk)], capture_output=True)
 
 
+def test_wrong_message_encoding_is_refused(tmp_path):
+    from mcap.writer import Writer
+    p = tmp_path / "json.mcap"
+    with open(p, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="other")
+        sid = w.register_schema("sensor_msgs/msg/Image", "ros2msg", b"")
+        cid = w.register_channel("/cam", "json", sid)
+        w.add_message(cid, log_time=1, data=b'{"height": 1}', publish_time=1)
+        w.finish()
+    with BagReader(p) as r:
+        with pytest.raises(BagError, match="encoded as 'json'"):
+            r.images("/cam")
+
+
 @pytest.mark.parametrize("chunked", [True, False])
 def test_reads_bags_written_by_the_mcap_library(tmp_path, chunked):
     """Other tools put Schema/Channel records inside chunks, or write no chunks at all."""

@@ -392,6 +392,13 @@ class BagReader:
         ty = self.topics()[topic][0]
         if ty != expected:
             raise self._err(f"topic {topic} has type {ty or 'unknown'}, expected {expected}")
+        if self._summary is not None:
+            encs = [enc for t, _, enc, _ in self._summary["channels"].values() if t == topic]
+        else:
+            encs = [i[4] for i in self._records() if i[0] == "channel" and i[3] == topic]
+        bad = [e for e in encs if e != "cdr"]
+        if bad:
+            raise self._err(f"topic {topic} is encoded as {bad[0]!r}, expected 'cdr'")
 
     def images(self, topic):
         """Header stamps and pixels of an Image topic: (stamps_ns (F,) int64, arrays (F, H, W)
