@@ -105,7 +105,7 @@ class BagReader:
                 raise _Corrupt("first record is not an MCAP Header")
             c = fmt.Cursor(body)
             self.profile, self.library = c.string(), c.string()
-        except (_Truncated, _Corrupt, ValueError) as err:
+        except (_Truncated, _Corrupt, ValueError, struct.error) as err:
             raise self._err(f"unreadable MCAP header: {err}") from None
         self._data_start = 8 + 9 + len(body)
         self._summary = None
@@ -116,7 +116,7 @@ class BagReader:
         except _Truncated as err:
             self._problem(f"truncated ({err}); the complete chunks before the cut are readable: "
                           f"run `lgs-wfs recover {self.path} OUT.mcap`")
-        except (_Corrupt, ValueError) as err:
+        except (_Corrupt, ValueError, struct.error) as err:
             self._problem(f"corrupt summary ({err})")
 
     def _problem(self, text):
