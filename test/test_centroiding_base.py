@@ -54,7 +54,7 @@ def test_registry_names():
     ("cmf", {"dither": 0}, "dither"),
     ("cmf", {"constrained": "yes"}, "constrained"),
     ("cmf", {"update_period": 0}, "update_period"),
-    ("corr", {"peak": "gauss"}, "peak"),
+    ("corr", {"peak": "lorentz"}, "peak"),
     ("corr", {"padding": 3}, "padding"),
     ("ann", {"model": "/nonexistent/model.onnx"}, "not found"),
 ])

@@ -105,21 +105,37 @@ class Centroider:
             f"data has shape {data.shape}; expected a frame {self.sensor.frame_shape} "
             f"or a subaperture stack {(n, p, p)}")
 
+    def float_stack(self, data) -> np.ndarray:
+        """Frame or stack -> ``(n, p, p)`` float32 (float64 if the input is float64).
+
+        May be the caller's array itself (never written to) when it already is a float
+        stack; bad subapertures are not cleaned.
+        """
+        stack = self.as_stack(data)
+        dtype = np.float64 if stack.dtype == np.float64 else np.float32
+        return stack.astype(dtype, copy=False)
+
+    def finish(self, out: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Block-pixel-axes ``(n, 2)`` -> detector axes float64, NaN where not ``ok``."""
+        out = np.asarray(self.to_detector(out), dtype=np.float64)
+        out[~ok] = np.nan
+        return out
+
     def prepare(self, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frame or stack -> (clean float stack, total, ok).
 
         Returns:
-            stack: ``(n, p, p)`` float32 (float64 if the input was float64), a new array;
-                bad subapertures are zeroed so they cannot poison vectorised maths.
+            stack: ``(n, p, p)`` float32 (float64 if the input was float64), never the
+                caller's array when bad subapertures had to be zeroed (so they cannot
+                poison vectorised maths); treat it as read-only.
             total: ``(n,)`` float64 sum of each subaperture (counts).
             ok: ``(n,)`` bool, finite pixels and total > 0.
         """
-        stack = self.as_stack(data)
-        dtype = np.float64 if stack.dtype == np.float64 else np.float32
-        stack = stack.astype(dtype, copy=True)
-        total = stack.reshape(self.n, -1).sum(axis=1, dtype=np.float64)
+        stack = self.float_stack(data)
+        total = stack.reshape(self.n, -1).sum(axis=1).astype(np.float64)
         ok = np.isfinite(total) & (total > 0)
         if not ok.all():
+            stack = stack.copy()
             stack[~ok] = 0
         return stack, total, ok
 
@@ -135,10 +151,7 @@ class Centroider:
             bad subapertures.
         """
         stack, total, ok = self.prepare(data)
-        local = self._centroid_pixels(stack, total, ok)
-        out = np.asarray(self.to_detector(local), dtype=np.float64)
-        out[~ok] = np.nan
-        return out
+        return self.finish(self._centroid_pixels(stack, total, ok), ok)
 
     def _centroid_pixels(self, stack, total, ok) -> np.ndarray:
         """``(n, 2)`` slopes in block pixel axes. Bad rows may hold anything."""

@@ -143,7 +143,7 @@ class CMF(Centroider):
             model = self.model_reference(number("sodium_fwhm_m", o["sodium_fwhm_m"], minimum=0))
         self.ref = ReferenceSource(self.n, self.p, o["reference"], o["history"],
                                    o["include_current"], o["update_period"], model)
-        self.nea = None
+        self._nea_state = None
         self._built_version = -1
 
     def model_reference(self, sodium_fwhm_m: float) -> np.ndarray:
@@ -173,7 +173,7 @@ class CMF(Centroider):
 
     def reset(self) -> None:
         self.ref.reset()
-        self.nea = None
+        self._nea_state = None
         self._built_version = -1
 
     def _rebuild_design(self) -> None:
@@ -201,14 +201,43 @@ class CMF(Centroider):
         if self._built_version != self.ref.version:
             self._rebuild_design()
         if self.weighting == "model":
-            if self._model_R is None:
-                var = self._variance(self._ref_counts)
-                r, ok = solve_filter(self.A, self.M, var)
-                self._model_R = (r, ok & self._ref_ok, var)
-            return self._model_R
+            return self._model_filter()[:3]
         var = self._variance(flat)
         r, ok = solve_filter(self.A, self.M, var)
         return r, ok & self._ref_ok, var
+
+    def _model_filter(self):
+        """Cached model-weighted filter: (R, ok, var, [R; 1] float64, float32, R var R^T, R 1)."""
+        if self._built_version != self.ref.version:
+            self._rebuild_design()
+        if self._model_R is None:
+            var = self._variance(self._ref_counts)
+            r, ok = solve_filter(self.A, self.M, var)
+            r3 = np.concatenate([r, np.ones((self.n, 1, r.shape[2]))], axis=1)
+            q = np.einsum("nkp,np,nlp->nkl", r, var, r)
+            self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2))
+        return self._model_R
+
+    def centroid(self, data) -> np.ndarray:
+        """As :meth:`Centroider.centroid`. With model weighting the filter only changes with
+        the reference, so a frame costs one ``(n, 3, pp)`` contraction (slopes and flux)."""
+        if self.weighting != "model":
+            return super().centroid(data)
+        stack = self.float_stack(data)
+        flat = stack.reshape(self.n, -1)
+        if self.ref.source == "history":
+            total = flat.sum(axis=1).astype(np.float64)
+            self.ref.observe(stack, np.isfinite(total) & (total > 0))
+        else:
+            self.ref.observe(None, None)
+        r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+        m = np.einsum("nkp,np->nk", r3 if flat.dtype == np.float64 else r3_32, flat).astype(np.float64)
+        flux = m[:, 2] - self.background * self.p * self.p
+        ok = np.isfinite(m).all(axis=1) & (m[:, 2] > 0) & (flux > 0) & fok
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = (m[:, :2] - self.background * rsum) / flux[:, None]
+        self._nea_state = ("q", q, flux, ok)
+        return self.finish(out, ok)
 
     def _centroid_pixels(self, stack, total, ok):
         self.ref.observe(stack, ok)
@@ -219,16 +248,31 @@ class CMF(Centroider):
         flux = total - self.background * self.p * self.p
         with np.errstate(divide="ignore", invalid="ignore"):
             out = np.einsum("nkp,np->nk", r, flat) / flux[:, None]
-            rf = r / flux[:, None, None]
-            nea = np.einsum("nkp,np,nlp->nkl", rf, var, rf)
-        bad = ~(fok & (flux > 0))
-        out[bad] = np.nan
-        nea[bad | ~ok] = np.nan
+        good = fok & (flux > 0) & ok
+        out[~good] = np.nan
+        self._nea_state = ("full", r, var, flux, good)
+        return out
+
+    @property
+    def nea(self) -> np.ndarray | None:
+        """Predicted noise-equivalent angle of the last frame: ``(n, 2, 2)`` covariance,
+        px^2, detector axes, ``(R/F) W^-1 (R/F)^T``; NaN for bad subapertures."""
+        st = self._nea_state
+        if st is None:
+            return None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if st[0] == "q":
+                _, q, flux, ok = st
+                nea = q / flux[:, None, None] ** 2
+            else:
+                _, r, var, flux, ok = st
+                rf = r / flux[:, None, None]
+                nea = np.einsum("nkp,np,nlp->nkl", rf, var, rf)
+        nea[~ok] = np.nan
         if self.polar:
             rot = _rotation(self.layout.e)
             nea = rot @ nea @ np.swapaxes(rot, 1, 2)
-        self.nea = nea
-        return out
+        return nea
 
     def describe(self):
         d = super().describe()

@@ -1,0 +1,148 @@
+"""Per-frame centroiding time on the full pupil (2,784 subapertures of 16 x 16), one core.
+
+Each algorithm runs on the same uint16 detector frame (elongated LGS spots, 1000 photons,
+Poisson noise), through the public ``centroid(frame)`` call, so the time includes cutting
+the frame into subapertures and the dtype conversion. Baselines: a plain numpy sum of the
+frame (the cost of reading it once) and aotools' centroiders on the same float stack.
+The ANN is timed with a 256-16-2 MLP (tanh hidden layer, random weights) built here with
+onnx.helper, run by onnxruntime with one intra-op thread.
+
+Run: ``python benchmarks/bench_centroiders.py [--quick]``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def _time(fn, repeats: int) -> tuple[float, float]:
+    """(median, best) seconds of ``repeats`` calls after one warm-up."""
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts)), float(np.min(ts))
+
+
+def _frame(sensor, seed=0):
+    from lgs_wfs_ros.centroiding.cog import elongation_fwhm_px, model_spots
+    from lgs_wfs_ros.optics import geometry
+    lay = geometry.layout(sensor)
+    n = lay.n_valid
+    core = np.full(n, sensor.core_fwhm_px)
+    par = np.hypot(core, elongation_fwhm_px(sensor))
+    rng = np.random.default_rng(seed)
+    img = model_spots(sensor.pixels, np.asarray(lay.e), core, par, rng.uniform(-0.5, 0.5, (n, 2)))
+    st = rng.poisson(img * sensor.photons).astype(np.uint16)
+    return geometry.stack_to_frame(st, lay), st
+
+
+def _mlp(path: Path, p: int = 16, hidden: int = 16, seed: int = 0) -> Path:
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+    rng = np.random.default_rng(seed)
+    w1 = numpy_helper.from_array(rng.normal(0, 0.1, (p * p, hidden)).astype(np.float32), "W1")
+    b1 = numpy_helper.from_array(np.zeros(hidden, np.float32), "B1")
+    w2 = numpy_helper.from_array(rng.normal(0, 0.1, (hidden, 2)).astype(np.float32), "W2")
+    b2 = numpy_helper.from_array(np.zeros(2, np.float32), "B2")
+    nodes = [helper.make_node("Gemm", ["x", "W1", "B1"], ["h"]),
+             helper.make_node("Tanh", ["h"], ["t"]),
+             helper.make_node("Gemm", ["t", "W2", "B2"], ["y"])]
+    graph = helper.make_graph(
+        nodes, "mlp", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", p * p])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 2])], [w1, b1, w2, b2])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in {"pixels": p, "detector": "any", "input_norm": "sum", "output_scale": 1.0,
+                 "output_frame": "detector", "conditioning": "none"}.items():
+        model.metadata_props.add(key=f"lgs_wfs.{k}", value=json.dumps(v))
+    onnx.save(model, str(path))
+    return path
+
+
+def run(quick: bool = False) -> list[dict]:
+    from aotools.image_processing import centroiders as aoc
+
+    from lgs_wfs_ros.centroiding import make_centroider
+    from lgs_wfs_ros.sensor import Sensor
+
+    sensor = Sensor()
+    frame, st = _frame(sensor)
+    stack_f = st.astype(np.float64)
+    n = st.shape[0]
+    reps = 10 if quick else 50
+    slow_reps = 2 if quick else 5
+    results = []
+
+    def add(name, seconds, target="", note=""):
+        med, best = seconds
+        results.append({"name": name, "value": round(med * 1e3, 4), "unit": "ms/frame",
+                        "target": target, "note": (note + f"; best {best * 1e3:.3f} ms").lstrip("; ")})
+        return med
+
+    t_sum = add("numpy sum of the uint16 frame", _time(lambda: frame.sum(), reps),
+                note=f"read-once baseline, {frame.shape} uint16")
+    t_ao = add("aotools centre_of_gravity", _time(lambda: aoc.centre_of_gravity(stack_f), reps),
+               note=f"({n}, 16, 16) float64 stack")
+    ref = st.mean(axis=0).astype(float)
+    t_ao_corr = add("aotools correlation_centroid",
+                    _time(lambda: aoc.correlation_centroid(stack_f.copy(), ref.copy()), slow_reps),
+                    note="Python loop over subapertures, one reference")
+
+    timings = {}
+    cases = [
+        ("cog", "cog", {}, "< 1 ms and >= 5x faster than aotools", reps),
+        ("tcog", "tcog", {"threshold": 3.0}, "", reps),
+        ("wcog", "wcog", {}, "", reps),
+        ("cmf (static model reference, model weighting)", "cmf",
+         {"reference": "model", "weighting": "model"}, "< 1 ms and >= 5x faster than aotools", reps),
+        ("cmf (paper: history of 5, image weighting, rebuilt every frame)", "cmf", {}, "", slow_reps),
+        ("cmf (history of 5, model weighting, update_period 100)", "cmf",
+         {"weighting": "model", "update_period": 100}, "", reps),
+        ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
+    ]
+    for label, name, opts, target, r in cases:
+        c = make_centroider(name, sensor, **opts)
+        timings[label] = add(label, _time(lambda: c.centroid(frame), r), target,
+                             note=f"uint16 frame in, {n} subapertures")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _mlp(Path(tmp) / "mlp.onnx")
+        c = make_centroider("ann", sensor, model=str(path))
+        timings["ann"] = add("ann (256-16-2 MLP, random weights, onnxruntime 1 thread)",
+                             _time(lambda: c.centroid(frame), reps),
+                             "< 1 ms and >= 5x faster than aotools",
+                             note="MLP built with onnx.helper, tanh hidden layer")
+
+    for label, key in (("cog", "cog"), ("cmf", "cmf (static model reference, model weighting)"),
+                       ("ann", "ann")):
+        results.append({"name": f"speed-up of {label} over aotools centre_of_gravity",
+                        "value": round(t_ao / timings[key], 2), "unit": "x", "target": ">= 5",
+                        "note": f"{label} {timings[key] * 1e3:.3f} ms vs aotools {t_ao * 1e3:.3f} ms"})
+        results.append({"name": f"{label} time over the frame-sum baseline",
+                        "value": round(timings[key] / t_sum, 2), "unit": "x", "target": "",
+                        "note": "how many times the cost of reading the frame once"})
+    key = "corr (static model reference, gauss 3x3 peak)"
+    results.append({"name": "speed-up of corr over aotools correlation_centroid",
+                    "value": round(t_ao_corr / timings[key], 2), "unit": "x", "target": "",
+                    "note": "same frame; aotools loops in Python"})
+    return results
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    for row in run(quick="--quick" in sys.argv):
+        print(json.dumps(row))
