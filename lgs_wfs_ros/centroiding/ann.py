@@ -166,15 +166,23 @@ class ANN(Centroider):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(x.shape[0], 2)}")
         return out
 
-    def _centroid_pixels(self, stack, total, ok):
-        x = stack.reshape(self.n, -1).astype(np.float32, copy=False)
+    def centroid(self, data) -> np.ndarray:
+        """As :meth:`Centroider.centroid` (bad rows go through the model as NaN/0, then NaN)."""
+        raw = np.asarray(data)
+        x = self.float_stack(raw).reshape(self.n, -1)
+        owned = not np.may_share_memory(x, raw)
+        if x.dtype != np.float32:
+            x, owned = x.astype(np.float32), True
+        total = x.sum(axis=1)
+        ok = np.isfinite(total) & (total > 0)
         if self.meta["input_norm"] == "sum":
-            scale = np.where(ok, 1.0 / np.where(ok, total, 1.0), 0.0).astype(np.float32)
-            x = x * scale[:, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                scale = (1.0 / total)[:, None]
+                x = np.multiply(x, scale, out=x) if owned else x * scale
         out = self.run(np.ascontiguousarray(x)) * self.meta["output_scale"]
         if self.meta["output_frame"] == "local":
             out = geometry.local_to_detector(out, self.layout.e)
-        return self.to_pixel_axes(out)
+        return self.finish(self.to_pixel_axes(out), ok)
 
     def describe(self):
         d = super().describe()

@@ -19,7 +19,9 @@ image *relative to its reference*; we report that displacement as the slope, i.e
 reference is taken to sit at the subaperture centre. That is exact for a static
 reference made at zero tip/tilt; for ``"history"`` it is the paper's idealised closed-loop
 assumption (the recent spots are centred on average), so a stationary off-centre spot
-reads ~0.
+reads ~0. With ``include_current=True`` the measured frame is 1/5 of its own reference,
+which pulls the estimate towards 0 (by ~1/5 of any displacement, and removes part of the
+noise): part of why the paper calls this setting idealised.
 
 Sub-pixel shifts use Fourier phase ramps (periodic over the p x p block; the Nyquist
 terms get no derivative); whole-pixel shifts are exact, zero-filled.
