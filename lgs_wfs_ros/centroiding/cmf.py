@@ -37,7 +37,7 @@ from .reference import ReferenceSource, fourier_derivatives, integer_shift
 
 
 def design(template: np.ndarray, dither: float = 0.02, constrained: bool = True,
-           constraint_px: int = 1, derivatives=None) -> tuple[np.ndarray, np.ndarray]:
+           constraint_px: int = 1, derivatives=None, out=None) -> tuple[np.ndarray, np.ndarray]:
     """Design matrix and constraint matrix of the (constrained) matched filter.
 
     Args:
@@ -46,6 +46,8 @@ def design(template: np.ndarray, dither: float = 0.02, constrained: bool = True,
         constrained: add the +-``constraint_px`` shifted references.
         derivatives: optional ``(gx, gy)`` ``(n, p, p)`` to use instead of the Fourier
             dither of ``template`` (same flux scale as ``template``).
+        out: optional ``(n, k, p*p)`` float64 buffer to fill (saves a large allocation
+            per frame when the filter is rebuilt every frame).
 
     Returns:
         ``A (n, p*p, k)`` and ``M (2, k)`` with ``k`` = 7 (constrained) or 3.
@@ -60,23 +62,30 @@ def design(template: np.ndarray, dither: float = 0.02, constrained: bool = True,
                  integer_shift(template, 0, c), integer_shift(template, 0, -c)]
         m[0] += [c, -c, 0.0, 0.0]
         m[1] += [0.0, 0.0, c, -c]
-    at = np.stack([col.reshape(n, p * p) for col in cols], axis=1)      # (n, k, pp)
-    return np.swapaxes(at, 1, 2), np.array(m)
+    k = len(cols)
+    if out is None or out.shape != (n, k, p * p):
+        out = np.empty((n, k, p * p))
+    for j, col in enumerate(cols):                                      # (n, k, pp)
+        out[:, j, :] = col.reshape(n, p * p)
+    return np.swapaxes(out, 1, 2), np.array(m)
 
 
-def solve_filter(a: np.ndarray, m: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def solve_filter(a: np.ndarray, m: np.ndarray, var: np.ndarray, work=None) -> tuple[np.ndarray, np.ndarray]:
     """``R = M (A^T W A)^+ A^T W`` for every subaperture.
 
     Args:
         a: ``(n, pp, k)`` design matrices.
         m: ``(2, k)`` constraint values.
         var: ``(n, pp)`` pixel variances (``W = 1/var``), > 0.
+        work: optional ``(n, k, pp)`` float64 scratch buffer.
 
     Returns:
         ``R (n, 2, pp)`` and ``ok (n,)``: True where ``R A = M`` holds (to 1e-6).
     """
     at = np.swapaxes(a, 1, 2)                                      # (n, k, pp), a view
-    atw = at / var[:, None, :]
+    if work is None or work.shape != at.shape:
+        work = np.empty(at.shape)
+    atw = np.divide(at, var[:, None, :], out=work)
     g = atw @ a                                                    # (n, k, k)
     # Scale to unit diagonal (conditioning); singular subapertures (e.g. an empty
     # reference) get the pseudo-inverse.
@@ -112,19 +121,22 @@ class CMF(Centroider):
         read_noise_e, background: counts; default the sensor's.
         var_floor: lower bound on the pixel variance, counts^2 (1.0).
         sodium_fwhm_m: layer thickness for ``reference="model"`` (10 km).
+        derivative: "fourier" (Fourier-shift dither of the reference, or the derivative
+            images given to ``set_reference``) | "dither" (the paper's: dithered images
+            supplied with :meth:`push_dither`, averaged over the last ``history`` pushes).
     """
 
     name = "cmf"
     _allowed = ("reference", "history", "include_current", "update_period", "dither",
                 "constrained", "constraint_px", "weighting", "read_noise_e", "background",
-                "var_floor", "sodium_fwhm_m")
+                "var_floor", "sodium_fwhm_m", "derivative")
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
         o = {"reference": "history", "history": 5, "include_current": True, "update_period": 1,
              "dither": 0.02, "constrained": True, "constraint_px": 1, "weighting": "image",
              "read_noise_e": float(sensor.read_noise_e), "background": float(sensor.background_e),
-             "var_floor": 1.0, "sodium_fwhm_m": 10e3}
+             "var_floor": 1.0, "sodium_fwhm_m": 10e3, "derivative": "fourier"}
         o.update(options)
         super().__init__(sensor, **o)
         self.dither = number("dither", o["dither"], minimum=0, strict=True)
@@ -138,6 +150,8 @@ class CMF(Centroider):
         self.read_noise = number("read_noise_e", o["read_noise_e"], minimum=0)
         self.background = number("background", o["background"], minimum=0)
         self.var_floor = number("var_floor", o["var_floor"], minimum=0, strict=True)
+        self.derivative = choice("derivative", o["derivative"], ("fourier", "dither"))
+        self._dithers = []
         model = None
         if o["reference"] == "model":
             model = self.model_reference(number("sodium_fwhm_m", o["sodium_fwhm_m"], minimum=0))
@@ -166,6 +180,32 @@ class CMF(Centroider):
         """
         self.ref.set(images, dx, dy)
 
+    def push_dither(self, images) -> None:
+        """Give the dithered images of the current frame (``derivative="dither"``).
+
+        Args:
+            images: ``(4, n_valid, p, p)`` counts: the spot shifted by +dither and -dither
+                in x, then +dither and -dither in y (block pixel axes), e.g. simulated
+                frames with the tip-tilt dither applied. The last ``history`` pushes are
+                averaged (the paper: "the dithered images were also averaged"); the
+                derivative is ``(mean(+) - mean(-)) / (2 dither)``. Call before
+                :meth:`centroid` of the frame they belong to.
+        """
+        images = np.array(images, dtype=float)
+        if images.shape != (4, self.n, self.p, self.p):
+            raise ValueError(f"dither images have shape {images.shape}, expected {(4, self.n, self.p, self.p)}")
+        self._dithers.append(np.where(np.isfinite(images), images, 0.0) - self.background)
+        del self._dithers[:-self.ref.history]
+        self.ref.version += 1
+
+    def _dither_derivatives(self, flux):
+        if not self._dithers:
+            raise ValueError("cmf: derivative='dither' needs push_dither(images) before the first frame")
+        mean = np.mean(self._dithers, axis=0)                              # (4, n, p, p)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(self._ref_ok, 1.0 / (2 * self.dither * flux), 0.0)[:, None, None]
+        return (mean[0] - mean[1]) * scale, (mean[2] - mean[3]) * scale
+
     @property
     def reference(self) -> np.ndarray | None:
         """Current reference images ``(n, p, p)`` counts (None before the first frame)."""
@@ -173,6 +213,7 @@ class CMF(Centroider):
 
     def reset(self) -> None:
         self.ref.reset()
+        self._dithers = []
         self._nea_state = None
         self._built_version = -1
 
@@ -187,7 +228,12 @@ class CMF(Centroider):
             with np.errstate(divide="ignore", invalid="ignore"):
                 derivs = tuple(np.where(self._ref_ok[:, None, None], g / flux[:, None, None], 0.0)
                                for g in self.ref.derivatives)
-        self.A, self.M = design(tmpl, self.dither, self.constrained, self.constraint_px, derivs)
+        if self.derivative == "dither":
+            derivs = self._dither_derivatives(flux)
+        self._at_buf = getattr(self, "_at_buf", None)
+        self.A, self.M = design(tmpl, self.dither, self.constrained, self.constraint_px, derivs,
+                                out=self._at_buf)
+        self._at_buf = np.swapaxes(self.A, 1, 2)
         self._ref_counts = ref.reshape(self.n, -1)
         self._built_version = self.ref.version
         self._model_R = None
@@ -203,7 +249,9 @@ class CMF(Centroider):
         if self.weighting == "model":
             return self._model_filter()[:3]
         var = self._variance(flat)
-        r, ok = solve_filter(self.A, self.M, var)
+        if getattr(self, "_work", None) is None or self._work.shape != self._at_buf.shape:
+            self._work = np.empty(self._at_buf.shape)
+        r, ok = solve_filter(self.A, self.M, var, self._work)
         return r, ok & self._ref_ok, var
 
     def _model_filter(self):
@@ -279,8 +327,11 @@ class CMF(Centroider):
         d["reference_frames_seen"] = self.ref.frames
         d["design_columns"] = (["gx", "gy", "T", "T+cx", "T-cx", "T+cy", "T-cy"] if self.constrained
                                else ["gx", "gy", "T"])
-        d["derivative"] = ("given derivative images" if self.ref.derivatives is not None
-                           else f"Fourier-shift dither +-{self.dither} px")
+        if self.derivative == "dither":
+            d["derivative"] = f"pushed dithered images +-{self.dither} px, mean of last {self.ref.history}"
+        else:
+            d["derivative"] = ("given derivative images" if self.ref.derivatives is not None
+                               else f"Fourier-shift dither +-{self.dither} px")
         return d
 
 
