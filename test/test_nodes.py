@@ -164,3 +164,48 @@ def test_recorder_writes_a_readable_bag(ros, tmp_path):
     stamps, images = reader.images("/wfs/frame")
     assert list(stamps) == [1000 + k for k in range(6)]
     np.testing.assert_array_equal(images[3], frames[3])
+
+
+def test_simulator_publishes_frames_truths_and_sensor(ros):
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
+
+    listener = ros.add(Node("listener", context=ros.context))
+    got = {"frame": {}, "true_slopes": {}, "sensor": []}
+    for kind in ("frame", "true_slopes"):
+        listener.create_subscription(
+            Image, f"/wfs/{kind}",
+            lambda cdr, k=kind: got[k].__setitem__(bags.decode_image(cdr)[0], bags.decode_image(cdr)),
+            qos.for_topic(kind), raw=True)
+    listener.create_subscription(String, "/wfs/sensor", lambda m: got["sensor"].append(m.data),
+                                 qos.LATCHED)
+    overrides = [Parameter("diameter_m", value=4.0), Parameter("obstruction_m", value=0.5),
+                 Parameter("n_subaps", value=8), Parameter("frames", value=5),
+                 Parameter("turbulence", value=False), Parameter("profile", value="centred"),
+                 Parameter("wait_for_subscribers", value=1), Parameter("rate_hz", value=50.0)]
+    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=overrides))
+    assert wait_for(lambda: sim.finished.is_set(), timeout=60)
+    assert wait_for(lambda: len(got["true_slopes"]) == 5, timeout=10)
+    assert sorted(got["frame"]) == sorted(got["true_slopes"])
+    stamps = sorted(got["frame"])
+    assert np.all(np.diff(stamps) == round(1e9 / 700.0))
+    _, frame_id, enc, frame = got["frame"][stamps[0]]
+    assert frame_id == "wfs" and enc == "mono16" and frame.shape == (128, 128)
+    _, _, enc, truth = got["true_slopes"][stamps[0]]
+    assert enc == "32FC2" and truth.shape == (8, 8, 2)
+    sensor = Sensor.from_json(got["sensor"][-1])
+    assert sensor.n_subaps == 8 and sensor.diameter_m == 4.0
+    lay = geometry.layout(sensor)
+    assert np.isnan(truth[~lay.valid]).all()
+    np.testing.assert_allclose(truth[lay.valid], 0.0)   # no turbulence: spots at the centre
+
+    # an invalid change is refused with the reason and leaves the sensor as it was
+    result = sim.set_parameters([Parameter("photons", value=-5.0)])[0]
+    assert not result.successful and "photons" in result.reason
+    result = sim.set_parameters([Parameter("detector", value="hexagonal")])[0]
+    assert not result.successful and "detector" in result.reason
+    assert sim.sim.sensor == sensor

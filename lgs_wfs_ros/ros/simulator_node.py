@@ -1,0 +1,228 @@
+"""simulator_node: SH-WFS frames and their ground truth at a steady rate.
+
+Publishes ``frame`` (mono16 or 32FC1), ``true_slopes`` (32FC2, G x G, NaN where not valid) with
+the same stamp, and the transient-local ``sensor`` description (sensor fields + simulation
+settings). Every field of :class:`~lgs_wfs_ros.sensor.Sensor` and of
+:class:`~lgs_wfs_ros.optics.simulator.SimulationConfig` is a parameter; a change is validated by
+building the new simulator in the on-set callback (refused with the reason if impossible) and
+swapped in by the post-set callback, then announced on ``sensor``.
+
+Stamps are exposure times on the sensor's clock: the wall time at start plus one frame period
+per frame, so they are unique and strictly increasing whatever the publishing jitter. Frames
+leave from a publishing thread on a steady-clock schedule (``rate_hz``; 0 = the sensor's frame
+rate); when the simulation is slower than the schedule, frames go out as fast as it allows and
+the lag is logged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+import time
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from .. import bags
+from ..optics import geometry
+from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
+from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
+from . import environment, parameters, qos
+
+SENSOR_DOC = {
+    "photons": "Expected detected photons per subaperture per frame.",
+    "detector": "Detector type.",
+    "read_noise_e": "Read noise per pixel, e- rms.",
+    "background_e": "Background per pixel per frame, e-.",
+    "r0_m": "Fried parameter at r0_wavelength_m, m.",
+    "frame_rate_hz": "Frame rate of the sensor (sets the stamps and the frozen-flow step), Hz.",
+}
+CONFIG_PARAMS = ("profile", "measured_index", "seconds_per_profile", "random_every", "turbulence",
+                 "noise", "seed", "per_field")
+
+
+def _sensor_params():
+    """(name, default, description, choices) of every Sensor field exposed as a parameter."""
+    out = []
+    for f in dataclasses.fields(Sensor):
+        if f.name == "single_subaperture_xy_m":
+            continue
+        default = f.default
+        if isinstance(default, tuple):
+            default = [float(v) for v in default]
+        choices = DETECTORS if f.name == "detector" else DTYPES if f.name == "dtype" else None
+        out.append((f.name, default, SENSOR_DOC.get(f.name, f"Sensor field {f.name}."), choices))
+    return out
+
+
+class SimulatorNode(Node):
+    def __init__(self, **kwargs):
+        kwargs.setdefault("namespace", "wfs")
+        super().__init__("simulator_node", **kwargs)
+        self._sensor_names = []
+        for name, default, doc, choices in _sensor_params():
+            parameters.declare(self, name, default, doc, choices=choices)
+            self._sensor_names.append(name)
+        parameters.declare(self, "single_subaperture", False, "Simulate only the paper's "
+                           "outermost subaperture (16 x 16 frames) instead of the full pupil.")
+        cfg = SimulationConfig()
+        parameters.declare(self, "profile", "random", "Sodium profile source.",
+                           choices=PROFILE_SOURCES)
+        parameters.declare(self, "measured_index", cfg.measured_index,
+                           "profile=measured: which measured profile.", low=0, high=100000)
+        parameters.declare(self, "seconds_per_profile", cfg.seconds_per_profile,
+                           "profile=evolving: seconds between measured profiles.", low=1e-3, high=1e4)
+        parameters.declare(self, "random_every", cfg.random_every,
+                           "profile=random: a new random profile every N frames.", low=1, high=10**9)
+        parameters.declare(self, "turbulence", True, "Frozen-flow turbulence moves the spots.")
+        parameters.declare(self, "noise", True, "Photon (and read) noise.")
+        parameters.declare(self, "seed", 1, "Random seed: the same seed gives the same frames.",
+                           low=0, high=2**31 - 1)
+        parameters.declare(self, "per_field", True, "photons counts the light inside the 16 x 16 "
+                           "field (docs/conventions.md) rather than the whole spot.")
+        parameters.declare(self, "rate_hz", 0.0, "Publishing rate, Hz (0: frame_rate_hz).",
+                           low=0.0, high=100000.0)
+        parameters.declare(self, "frames", 0, "Frames to publish, then stop (0: forever).",
+                           low=0, high=2**31 - 1)
+        parameters.declare(self, "wait_for_subscribers", 0, "Wait until this many subscribers "
+                           "listen to frame before the first frame.", low=0, high=1000)
+        parameters.declare(self, "start_delay_s", 0.0, "Extra wait before the first frame, s.",
+                           low=0.0, high=600.0)
+
+        self._lock = threading.Lock()
+        self._pending = None
+        self.sim = self._build({})
+        self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+
+        self._frame_pub = self.create_publisher(Image, "frame", qos.FRAME)
+        self._truth_pub = self.create_publisher(Image, "true_slopes", qos.SLOPES)
+        self._sensor_pub = self.create_publisher(String, "sensor", qos.LATCHED)
+        self.published = 0
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._announce()
+        self._thread = threading.Thread(target=self._run, name="simulator", daemon=True)
+        self._thread.start()
+
+    # -- configuration ---------------------------------------------------------------
+    def _build(self, changes: dict) -> Simulator:
+        """A simulator from the current parameters plus ``changes``; ValueError if impossible."""
+        v = parameters.values(self, self._sensor_names + list(CONFIG_PARAMS)
+                              + ["single_subaperture"])
+        v.update(changes)
+        fields = {n: v[n] for n in self._sensor_names}
+        for n in ("n_subaps", "pixels"):
+            fields[n] = int(fields[n])
+        try:
+            sensor = Sensor(**fields)
+            if v["single_subaperture"]:
+                sensor = Sensor.paper_single(sensor.detector, **{
+                    k: val for k, val in fields.items() if k != "detector"})
+            config = SimulationConfig(**{n: v[n] for n in CONFIG_PARAMS})
+            return Simulator(sensor, config)
+        except (SensorError, TypeError) as exc:
+            raise ValueError(str(exc)) from exc
+
+    def _validate(self, params):
+        changes = {p.name: p.value for p in params}
+        relevant = set(changes) & (set(self._sensor_names) | set(CONFIG_PARAMS)
+                                   | {"single_subaperture"})
+        if relevant:
+            try:
+                self._pending = self._build({k: changes[k] for k in relevant})
+            except (ValueError, OSError) as exc:
+                self._pending = None
+                return parameters.refuse(str(exc))
+        return parameters.accept()
+
+    def _apply(self, params):
+        if self._pending is not None:
+            with self._lock:
+                self.sim, self._pending = self._pending, None
+            self._announce()
+
+    def _announce(self):
+        desc = self.sim.describe()
+        self._sensor_pub.publish(String(data=json.dumps(desc, default=str)))
+        s = self.sim.sensor
+        self.get_logger().info(
+            f"sensor: {s.grid}x{s.grid} subapertures, {s.detector}, {s.photons:g} photons, "
+            f"profile {self.sim.config.profile}, turbulence {self.sim.config.turbulence}")
+
+    # -- publishing -------------------------------------------------------------------
+    def _wait_to_start(self):
+        need = self.get_parameter("wait_for_subscribers").value
+        while need and self._frame_pub.get_subscription_count() < need and not self._stop.is_set():
+            time.sleep(0.05)
+        delay = self.get_parameter("start_delay_s").value
+        self._stop.wait(delay)
+
+    def _run(self):
+        self._wait_to_start()
+        stamp_ns = time.time_ns()
+        due = time.monotonic()
+        lag_logged = 0.0
+        while not self._stop.is_set():
+            budget = self.get_parameter("frames").value
+            if budget and self.published >= budget:
+                break
+            with self._lock:
+                sim = self.sim
+                frame = sim.next()
+                layout = sim.layout
+                period_s = 1.0 / sim.sensor.frame_rate_hz
+            truth = geometry.slopes_to_grid(frame.truth, layout)
+            self._frame_pub.publish(bags.encode_image(frame.frame, stamp_ns))
+            self._truth_pub.publish(bags.encode_image(truth, stamp_ns))
+            self.published += 1
+            stamp_ns += int(round(period_s * 1e9))
+            rate = self.get_parameter("rate_hz").value or 1.0 / period_s
+            due += 1.0 / rate
+            delay = due - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            elif -delay > 1.0 and time.monotonic() - lag_logged > 5.0:
+                lag_logged = time.monotonic()
+                self.get_logger().warning(f"simulation runs {-delay:.1f} s behind {rate:g} Hz")
+                due = time.monotonic()
+        self.get_logger().info(f"published {self.published} frames")
+        self.finished.set()
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+def main(args=None):
+    environment.configure()
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = SimulatorNode()
+        while rclpy.ok() and not node.finished.is_set():
+            rclpy.spin_once(node, timeout_sec=0.1)
+        end = time.monotonic() + 1.0   # let reliable deliveries of the last frames finish
+        while rclpy.ok() and time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except ValueError as exc:
+        print(f"simulator_node: cannot start: {exc}", flush=True)
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
