@@ -326,7 +326,7 @@ def _fit_from(hk, y, wt, p0, lo, hi):
 
 
 def fit_five_gaussians(altitude_m, profile, p0=None, n_gauss: int = N_GAUSS,
-                       noise_floor: float | None = 0.01) -> np.ndarray:
+                       noise_floor: float | None = 0.01, p0_only: bool = False) -> np.ndarray:
     """Fit ``sum_k a_k exp(-(h - b_k)^2 / c_k^2)`` to one profile (the paper's form).
 
     Bounded least squares (``scipy.optimize.least_squares``, trf, analytic Jacobian) with
@@ -343,6 +343,7 @@ def fit_five_gaussians(altitude_m, profile, p0=None, n_gauss: int = N_GAUSS,
             (``y_s`` the profile smoothed over 200 m): chi-square for photon-counting
             lidar data, whose variance is about proportional to the counts, so the faint
             upper tail counts too. ``None`` gives unweighted least squares.
+        p0_only: start from ``p0`` alone (skip the peak and quantile starts).
     Returns:
         ``(n_gauss, 3)`` rows ``(a, b_m, c_m)`` sorted by ``b``; ``a`` in the profile's units.
     """
@@ -364,7 +365,8 @@ def fit_five_gaussians(altitude_m, profile, p0=None, n_gauss: int = N_GAUSS,
         dh = float(np.mean(np.diff(hk)))
         wt = 1.0 / np.sqrt(np.clip(gaussian_filter1d(yn, 0.2 / dh, mode="nearest"), 0, None)
                            + noise_floor)
-    starts = [_peak_start(hk, yn, n_gauss), _quantile_start(hk, yn, n_gauss)]
+    starts = [] if (p0 is not None and p0_only) else [_peak_start(hk, yn, n_gauss),
+                                                       _quantile_start(hk, yn, n_gauss)]
     if p0 is not None:
         q = np.array(p0, dtype=float)
         if q.shape != (n_gauss, 3):
@@ -564,7 +566,7 @@ def fit_profiles(altitude_m, profiles, progress: bool = False) -> np.ndarray:
             print(f"pass 1: {i + 1}/{prof.shape[0]}", end="\r", file=sys.stderr)
     template = np.median(fits, axis=0)
     for i, y in enumerate(prof):
-        alt = fit_five_gaussians(h, y, p0=template)
+        alt = fit_five_gaussians(h, y, p0=template, p0_only=True)
         if _fit_cost(h, y, alt) < _fit_cost(h, y, fits[i]) * (1 + 1e-6):
             fits[i] = alt
         if progress:
