@@ -154,6 +154,7 @@ class ANN(Centroider):
         elif len(inputs) > 1:
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
+        self._ones = np.ones(self.p * self.p, dtype=np.float32)
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """Raw model output ``(n, 2)`` float64 for ``(n, p*p)`` float32 inputs."""
@@ -173,7 +174,7 @@ class ANN(Centroider):
         owned = not np.may_share_memory(x, raw)
         if x.dtype != np.float32:
             x, owned = x.astype(np.float32), True
-        total = x.sum(axis=1)
+        total = x @ self._ones                          # BLAS row sums (faster than .sum)
         ok = np.isfinite(total) & (total > 0)
         if self.meta["input_norm"] == "sum":
             with np.errstate(divide="ignore", invalid="ignore"):
