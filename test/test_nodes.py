@@ -209,3 +209,48 @@ def test_simulator_publishes_frames_truths_and_sensor(ros):
     result = sim.set_parameters([Parameter("detector", value="hexagonal")])[0]
     assert not result.successful and "detector" in result.reason
     assert sim.sim.sensor == sensor
+
+
+def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.analysis.bagdata import ContractBagWriter
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    path = tmp_path / "in.mcap"
+    frames = {1000 + 10 * k: small_frame(SMALL, 10 + k) for k in range(20)}
+    with ContractBagWriter(path, SMALL) as bag:
+        for stamp, f in frames.items():
+            bag.frame(stamp, f)
+            bag.truth(stamp, np.zeros((geometry.layout(SMALL).n_valid, 2)))
+    remap = ["--ros-args", "-r", "frame:=/wfs/frame", "-r", "sensor:=/wfs/sensor"]
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=remap))
+    out = {}
+    listener = ros.add(Node("listen_cog", context=ros.context))
+    listener.create_subscription(Image, "/cog/slopes",
+                                 lambda cdr: out.__setitem__(*bags.decode_image(cdr)[::3]),
+                                 qos.SLOPES, raw=True)
+    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(path)), Parameter("rate", value="max"),
+        Parameter("wait_for", value=["/cog/slopes"]), Parameter("start_delay_s", value=1.0)]))
+    assert wait_for(lambda: player.finished.is_set(), timeout=60)
+    assert wait_for(lambda: len(out) == 20, timeout=10)
+    assert player.published["frame"] == 20 and player.published["sensor"] == 1
+    assert cog.counters.processed == 20 and cog.counters.rejected == 0
+    lib = make_centroider("cog", SMALL)
+    lay = geometry.layout(SMALL)
+    for stamp, f in frames.items():
+        np.testing.assert_allclose(geometry.grid_to_slopes(out[stamp], lay), lib.centroid(f), atol=1e-5)
+
+
+def test_player_refuses_a_bad_bag(ros, tmp_path):
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not a bag at all" * 10)
+    with pytest.raises(bags.BagError):
+        PlayerNode(context=ros.context, parameter_overrides=[Parameter("bag", value=str(junk))])

@@ -101,8 +101,23 @@ class PlayerNode(Node):
             self._answer.wait_for(lambda: all(self.answers.get(t, -1) >= stamp_ns for t in topics)
                                   or self._stop.is_set(), timeout=timeout)
 
+    def _publish_first_sensor(self):
+        """The sensor description goes out before the start delay, so consumers are
+        configured for the bag's sensor before its first frame arrives."""
+        topics = [t for t, k in self.sources.items() if k == "sensor"]
+        for _topic, _type, _log, _pub, cdr in self.reader.messages(topics):
+            self.pubs["sensor"].publish(bytes(cdr))
+            self.published["sensor"] += 1
+            return
+
     def _play(self):
-        time.sleep(self.get_parameter("start_delay_s").value)
+        try:
+            self._publish_first_sensor()
+        except bags.BagError as exc:
+            self.get_logger().error(f"stopped: {exc}")
+            self.finished.set()
+            return
+        self._stop.wait(self.get_parameter("start_delay_s").value)
         try:
             while not self._stop.is_set():
                 self._play_once()
@@ -117,10 +132,14 @@ class PlayerNode(Node):
         t0 = time.monotonic()
         first_stamp = None
         sent = 0
+        skip_sensor = self.published.get("sensor", 0) == 1   # already sent by _publish_first_sensor
         for topic, _type, _log, publish_ns, cdr in self.reader.messages(list(self.sources)):
             if self._stop.is_set():
                 return
             kind = self.sources[topic]
+            if kind == "sensor" and skip_sensor:
+                skip_sensor = False
+                continue
             rate = parse_rate(self.get_parameter("rate").value)
             if kind == "frame":
                 stamp = bags.decode_image(cdr)[0]

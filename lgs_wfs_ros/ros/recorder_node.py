@@ -12,7 +12,7 @@ when the disk fills up (reported; what was written stays readable).
 
 from __future__ import annotations
 
-import os
+import threading
 import time
 from pathlib import Path
 
@@ -63,7 +63,9 @@ class RecorderNode(Node):
         self.recorded: dict[str, int] = {}
         self.frames_seen = 0
         self.failed = ""
-        self.done = False
+        self.done = False        # the bag is closed
+        self.closing = False     # no more writes
+        self._close_lock = threading.Lock()
         self.budget_reached = False
         self._linger_timer = None
         self._subs = {}
@@ -80,7 +82,7 @@ class RecorderNode(Node):
         return parameters.accept()
 
     def _discover(self):
-        if not self.get_parameter("discover").value or self.done:
+        if not self.get_parameter("discover").value or self.closing:
             return
         for topic, types in self.get_topic_names_and_types():
             kind = topic.rsplit("/", 1)[-1]
@@ -108,7 +110,7 @@ class RecorderNode(Node):
         self.get_logger().info(f"recording {topic} [{type_name}]")
 
     def _on_message(self, topic, kind, cdr, info):
-        if self.done:
+        if self.closing:
             return
         if kind == "frame":
             if self.budget_reached:
@@ -145,13 +147,16 @@ class RecorderNode(Node):
 
     def close(self):
         """Finish the bag (idempotent); log what was recorded."""
-        if self.done:
-            return
-        self.done = True
+        with self._close_lock:
+            if self.closing:
+                return
+            self.closing = True
         try:
             self.writer.close()
         except OSError as exc:
             self.get_logger().error(f"closing {self.path} failed: {exc}")
+        finally:
+            self.done = True
         counts = ", ".join(f"{t}: {n}" for t, n in sorted(self.recorded.items()))
         self.get_logger().info(f"closed {self.path} ({counts})")
 
