@@ -1,0 +1,111 @@
+"""Detector model: photon (Poisson) noise, background, read noise, counts.
+
+Units: counts are photo-electrons (gain 1 e-/ADU). ``images`` are photon-normalised
+spots: pixel values are the fraction of a subaperture's photons expected in the pixel,
+as :mod:`lgs_wfs_ros.optics.spots` makes them (each image sums to ``1 - truncated``).
+With ``photons = N`` the expected count in a pixel is ``N * image``, so ``N`` is the
+number of photons a subaperture would detect with an unbounded field: with truncation
+the field receives ``N (1 - truncated)`` on average. Pass ``per_field=True`` to make ``N``
+the expected count inside the field instead (each image is divided by its sum first).
+
+Speed (docs/simulator.md): ``numpy``'s Poisson sampler costs ~35 ns a pixel whatever
+its mean, so with no background only the pixels whose expected count exceeds
+``POISSON_FLOOR`` (1e-9 photons) are drawn; the others are 0. The photons ignored that
+way are below ``POISSON_FLOOR`` times the number of such pixels (< 1e-3 photon per
+full frame), far below anything measurable; every drawn pixel is an exact Poisson draw.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+POISSON_FLOOR = 1e-9      # expected photons below which a pixel is not drawn (background 0)
+UINT16_MAX = 65535
+DTYPES = ("uint16", "float32", "float64")
+
+
+def _photon_map(images, photons, per_field: bool) -> np.ndarray:
+    img = np.asarray(images, dtype=float)
+    if img.ndim < 2:
+        raise ValueError(f"images must be (..., p, p), got shape {img.shape}")
+    if not np.all(np.isfinite(img)) or np.any(img < 0):
+        raise ValueError("images must be finite and >= 0")
+    ph = np.asarray(photons, dtype=float)
+    if not np.all(np.isfinite(ph)) or np.any(ph < 0):
+        raise ValueError("photons must be finite and >= 0")
+    if ph.ndim > img.ndim - 2 or ph.shape != img.shape[:ph.ndim]:
+        raise ValueError(f"photons must be a scalar or have the leading shape of images "
+                         f"{img.shape[:-2]}, got {ph.shape}")
+    ph = ph.reshape(ph.shape + (1,) * (img.ndim - ph.ndim))
+    if per_field:
+        total = img.sum(axis=(-2, -1), keepdims=True)
+        if np.any(total <= 0):
+            raise ValueError("per_field=True needs every image to hold some light")
+        return img * (ph / total)
+    return img * ph
+
+
+def poisson(lam: np.ndarray, rng: np.random.Generator, floor: float = 0.0) -> np.ndarray:
+    """Exact Poisson draws of mean ``lam`` (any shape) as int64; pixels with
+    ``lam <= floor`` are set to 0 without a draw (``floor = 0``: only exact zeros)."""
+    flat = lam.reshape(-1)
+    idx = np.flatnonzero(flat > floor)
+    out = np.zeros(flat.size, dtype=np.int64)
+    if idx.size == flat.size:
+        return rng.poisson(lam).astype(np.int64, copy=False)
+    out[idx] = rng.poisson(flat[idx])
+    return out.reshape(lam.shape)
+
+
+def expose(images, photons, rng: np.random.Generator | None = None, read_noise_e: float = 0.0,
+           background_e: float = 0.0, subtract_background: bool = True, dtype: str = "uint16",
+           noise_free: bool = False, per_field: bool = False, return_clipped: bool = False):
+    """Turn photon-normalised images into detector counts.
+
+    Args:
+        images: ``(..., p, p)`` expected fraction of a subaperture's photons per pixel.
+        photons: expected photons per subaperture (scalar or the leading shape of images).
+        rng: ``numpy.random.Generator`` (required unless ``noise_free``).
+        read_noise_e: Gaussian read noise rms per pixel, e-.
+        background_e: expected background per pixel, e- (Poisson, like the signal).
+        subtract_background: subtract the expected background (before rounding).
+        dtype: ``"uint16"`` (rounded, clipped to 0..65535), ``"float32"`` or ``"float64"``.
+        noise_free: return the expected counts (no random draw).
+        per_field: ``photons`` is the expected count inside the field (see module doc).
+        return_clipped: also return the number of pixels clipped at 65535 (saturated) and
+            at 0 (uint16 only; both 0 for float output) as a dict.
+    Returns:
+        ``counts`` of shape ``images.shape`` and the requested dtype (a new array; inputs
+        are never modified), or ``(counts, {"saturated": int, "negative": int})``.
+    """
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    for name, v in (("read_noise_e", read_noise_e), ("background_e", background_e)):
+        if not (np.isfinite(v) and v >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    lam = _photon_map(images, photons, per_field)
+    if background_e > 0:
+        lam = lam + background_e
+    if noise_free:
+        counts = lam
+    else:
+        if not isinstance(rng, np.random.Generator):
+            raise ValueError("rng must be a numpy.random.Generator unless noise_free=True")
+        floor = POISSON_FLOOR if background_e == 0 else 0.0
+        counts = poisson(lam, rng, floor).astype(float)
+        if read_noise_e > 0:
+            counts += rng.normal(0.0, read_noise_e, size=counts.shape)
+    if subtract_background and background_e > 0:
+        counts = counts - background_e
+    clipped = {"saturated": 0, "negative": 0}
+    if dtype == "uint16":
+        counts = np.rint(counts)
+        clipped["saturated"] = int(np.count_nonzero(counts > UINT16_MAX))
+        clipped["negative"] = int(np.count_nonzero(counts < 0))
+        counts = np.clip(counts, 0, UINT16_MAX).astype(np.uint16)
+    else:
+        counts = np.asarray(counts, dtype=dtype)
+    return (counts, clipped) if return_clipped else counts
+
+
+__all__ = ["expose", "poisson", "POISSON_FLOOR", "UINT16_MAX"]
