@@ -324,19 +324,36 @@ def _log(stamp_ns, log_ns):
     return int(stamp_ns if log_ns is None else log_ns)
 
 
-def simulate(sensor: Sensor, frames: int, seed: int = 0, profile: str = "evolving", **config):
-    """``(frames (F, H, W), truths (F, n, 2) px, settings dict)`` from the library's simulator.
+class _Tilts:
+    """Adapter: a precomputed ``(F, n, 2)`` displacement series with ``tilts_at(index)``."""
 
-    profile: the simulator's profile source (e.g. "evolving", "uncentred", "centred",
-    "random", "measured"); ``config``: further ``SimulationConfig`` fields.
+    def __init__(self, series):
+        self.series = series
+
+    def tilts_at(self, index):
+        return self.series[index]
+
+
+def simulate(sensor: Sensor, frames: int, seed: int = 0, profile: str = "evolving", **config):
+    """``(frames (F, H, W), truths (F, n, 2) px, sensor extra dict)`` from the library's simulator.
+
+    profile and config: :class:`~lgs_wfs_ros.optics.simulator.SimulationConfig` fields. For
+    the single-subaperture sensor with turbulence the displacements come from
+    :func:`.reproduce.gtilt_series` (frozen flow on an aotools screen).
     """
     from ..optics.simulator import SimulationConfig, Simulator
 
     cfg = SimulationConfig(seed=seed, profile=profile, **config)
-    sim = Simulator(sensor, cfg)
-    out = sim.run(frames)
-    settings = {"seed": seed, "profile": profile, **config}
-    return np.asarray(out.frames), np.asarray(out.truths), settings
+    disp = None
+    if sensor.is_single and cfg.turbulence:
+        from .reproduce import gtilt_series
+        disp = _Tilts(gtilt_series(sensor, frames, seed)[:, None, :])
+    sim = Simulator(sensor, cfg, displacements=disp)
+    imgs, truths = [], []
+    for fr in sim.frames(frames):
+        imgs.append(fr.frame)
+        truths.append(fr.truth)
+    return np.stack(imgs), np.stack(truths), {"simulation": cfg.to_dict()}
 
 
 def make_sample_bag(path, frames: int = 40, *, sensor: Sensor | None = None,
@@ -366,6 +383,7 @@ def make_sample_bag(path, frames: int = 40, *, sensor: Sensor | None = None,
     if frames < 1 or decimate < 1:
         raise ValueError("frames and decimate must be >= 1")
     imgs, truths, settings = simulate(sensor, frames, seed, profile, **sim_config)
+    settings["start_stamp_ns"] = int(start_ns)
     models = models or {}
 
     def build(alg):

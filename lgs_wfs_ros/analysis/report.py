@@ -85,26 +85,33 @@ def crb_covariances(sensor, image_at, truths: np.ndarray) -> np.ndarray:
 
 
 def simulator_model(data: BagData):
-    """``(image_at, truths (K, n, 2), note)`` from the simulator settings in the sensor
-    description, or None when the bag does not carry them (a bag from another tool)."""
-    if data.sensor is None or data.truth is None or not len(data.truth):
+    """``(image_at, truths (K, n, 2), note)`` rebuilt from the simulator settings in the
+    sensor description (keys ``simulation`` and ``start_stamp_ns``, as written by
+    :func:`.bagdata.make_sample_bag`), or None when the bag does not carry them."""
+    info = data.sensor_info or {}
+    if data.sensor is None or data.truth is None or not len(data.truth) or "simulation" not in info:
         return None
+    from ..optics.detector import expose  # noqa: F401  (the simulator's photon convention)
+    from ..optics.simulator import SimulationConfig, Simulator
     try:
-        from ..optics.simulator import expected_images_factory
-    except ImportError:
+        cfg = SimulationConfig.from_dict(info["simulation"])
+        sim = Simulator(data.sensor, cfg.replace(turbulence=False))
+    except (ValueError, TypeError, KeyError, FileNotFoundError):
         return None
-    try:
-        factory = expected_images_factory(data.sensor, data.sensor_info)
-    except (ValueError, KeyError, TypeError):
-        return None
-    if factory is None:
-        return None
+    start = int(info.get("start_stamp_ns", data.truth.stamps[0]))
     lay = geometry.layout(data.sensor)
     idx = np.unique(np.linspace(0, len(data.truth) - 1, min(CRB_SAMPLES, len(data.truth))).astype(int))
     truths = data.truth.data[idx][:, lay.valid.ravel()].astype(float)
-    stamps = data.truth.stamps[idx]
-    return (lambda k, s: factory(int(stamps[k]), s)), truths, \
-        f"simulator image model at the truths of {len(idx)} frames"
+    frame_index = np.rint((data.truth.stamps[idx] - start) * data.sensor.frame_rate_hz / 1e9).astype(int)
+    s = data.sensor
+
+    def image_at(k, shift):
+        density, key = sim.profile_at(max(int(frame_index[k]), 0))
+        img, _ = sim.spots(density, key, shift)
+        if cfg.per_field:
+            img = img / img.sum(axis=(1, 2), keepdims=True)
+        return img * s.photons + s.background_e
+    return image_at, truths, f"simulator image model ({cfg.profile} profile) at the truths of {len(idx)} frames"
 
 
 # -- analysis ---------------------------------------------------------------------------------
