@@ -148,7 +148,29 @@ def _check_shift(shift_px, n: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # the light as point elements (one per altitude cell)
 # ---------------------------------------------------------------------------------------
-MAX_ELEMENT_NODES = 0.1   # altitude cells are split until each spans <= this many nodes
+MAX_ELEMENT_NODES = 0.35  # altitude cells are split (or merged) so each spans about this many nodes
+LIGHT_CUT = 1e-12         # light beyond these cumulative fractions at either end is dropped
+
+
+def _merge(h_c, var_h, mass, k: int):
+    """Merge runs of ``k`` consecutive elements, keeping their mass, mean and variance."""
+    j = h_c.shape[-1] // k * k
+    rest = h_c.shape[-1] - j
+
+    def grp(a):
+        a = np.broadcast_to(a, mass.shape)
+        head = a[..., :j].reshape(a.shape[:-1] + (-1, k))
+        return head, a[..., j:]
+
+    (hm, ht), (vm, vt), (mm, mt) = grp(h_c), grp(var_h), grp(mass)
+    m = mm.sum(-1)
+    safe = np.where(m > 0, m, 1.0)
+    mean = np.where(m > 0, (mm * hm).sum(-1) / safe, hm.mean(-1))
+    var = np.where(m > 0, (mm * (vm + (hm - mean[..., None]) ** 2)).sum(-1) / safe, 0.0)
+    if rest:
+        return (np.concatenate([mean, ht], -1), np.concatenate([var, vt], -1),
+                np.concatenate([m, mt], -1))
+    return mean, var, m
 
 
 def _elements(h: np.ndarray, rho: np.ndarray, refine: int):
@@ -221,19 +243,30 @@ class SpotModel:
             major_y = np.abs(self.e[:, 1]) > np.abs(self.e[:, 0])
             e_maj = np.where(major_y, self.e[:, 1], self.e[:, 0])
         step = 1.0 / (m * np.abs(e_maj))                      # node spacing along e, px
-        # light extent along e, px; window that can reach the field along the major axis
-        u_lo, u_hi = elongation_px(sensor, self.r_m, h[[0, -1]]).T if self.n else (0, 0)
+        cz = math.cos(math.radians(sensor.zenith_deg))
+        # elements: split or merge altitude cells to about MAX_ELEMENT_NODES nodes each
+        dgdh = cz / h ** 2 / sensor.pixel_scale_rad                 # px per m of altitude, per m of r
+        span = (np.diff(h) * dgdh[:-1]).max() * (self.r_m / step).max(initial=0.0)
+        refine = int(min(64, max(1, math.ceil(span / MAX_ELEMENT_NODES))))
+        merge = int(min(h.size, max(1, math.floor(MAX_ELEMENT_NODES / max(span, 1e-300)))))
+        h_c, var_h, mass = _elements(h, rho, refine)
+        if merge > 1:
+            h_c, var_h, mass = _merge(h_c, var_h, mass, merge)
+        # where the light is (cumulative in (LIGHT_CUT, 1 - LIGHT_CUT)), per profile
+        cum = np.cumsum(mass, axis=-1)
+        inside = (cum > LIGHT_CUT) & (cum - mass < 1 - LIGHT_CUT)
+        mass = np.where(inside, mass, 0.0)
+        hc2 = np.broadcast_to(h_c, mass.shape)
+        h_lo = np.where(inside, hc2, np.inf).min(-1)
+        h_hi = np.where(inside, hc2, -np.inf).max(-1)
+        u_lo = self.r_m * cz * (1.0 / sensor.h_ref_m - 1.0 / h_lo) / sensor.pixel_scale_rad
+        u_hi = self.r_m * cz * (1.0 / sensor.h_ref_m - 1.0 / h_hi) / sensor.pixel_scale_rad
+        # window that can reach the field along the major axis
         reach = (p / 2 + self.max_shift_px + CORE_SIGMAS * self.sigma_px) / np.abs(e_maj)
         lo = np.maximum(np.floor(np.minimum(u_lo, 0) / step), -np.ceil(reach / step)) - 1
         hi = np.minimum(np.ceil(np.maximum(u_hi, 0) / step), np.ceil(reach / step)) + 1
         lo, hi = lo.astype(np.int64), hi.astype(np.int64)
         count = hi - lo + 1
-        cz = math.cos(math.radians(sensor.zenith_deg))
-        # elements: split altitude cells finer than MAX_ELEMENT_NODES nodes
-        dgdh = cz / h ** 2 / sensor.pixel_scale_rad                 # px per m of altitude, per m of r
-        span = (np.diff(h) * dgdh[:-1]).max() * (self.r_m / step).max(initial=0.0)
-        refine = int(min(64, max(1, math.ceil(span / MAX_ELEMENT_NODES))))
-        h_c, var_h, mass = _elements(h, rho, refine)
         g_c = cz * (1.0 / sensor.h_ref_m - 1.0 / h_c) / sensor.pixel_scale_rad   # px per m of r
         dg_c = cz / h_c ** 2 / sensor.pixel_scale_rad
         order = np.argsort(count, kind="stable")
