@@ -1,0 +1,358 @@
+"""The Shack-Hartmann frame simulator: frames and their ground truth, reproducibly.
+
+A :class:`Simulator` joins the pieces of :mod:`lgs_wfs_ros.optics`: a sodium profile
+(:mod:`.sodium`), true spot displacements (:mod:`.turbulence`, frozen flow), noise-free
+spots (:mod:`.spots`) and the detector (:mod:`.detector`), for the full pupil or the
+one-subaperture sensor of the paper's figures (``Sensor.paper_single``, 16 x 16 frames).
+
+Every frame carries its truth: ``(n_valid, 2)`` true displacements ``t`` in pixels,
+detector axes (the image position of ``h_ref``, conventions section 3). Polar-detector
+blocks are sampled in their local frame; the truth stays in detector axes.
+
+Random streams: one ``SeedSequence(seed)`` is split into independent streams for the
+turbulence, the profiles and the detector noise, so that switching noise off does not
+change the turbulence, and the same seed gives the same frames bit for bit.
+
+:func:`subaperture_batch` makes many single-subaperture images with random profiles and
+random positions in one vectorised call (neural-network training sets).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..sensor import Sensor
+from . import sodium
+from .detector import expose
+from .geometry import layout, stack_to_frame
+from .spots import SpotModel
+
+PROFILE_SOURCES = ("centred", "uncentred", "measured", "evolving", "random", "gaussian",
+                   "explicit")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """What to simulate besides the sensor (all JSON-able through :meth:`to_dict`).
+
+    Attributes:
+        profile: ``"centred"``/``"uncentred"`` (the paper's fixed cases, on
+            :func:`sodium.default_altitude_grid`), ``"measured"`` (row ``measured_index``
+            of :func:`sodium.load_measured`), ``"evolving"`` (the measured sequence
+            interpolated in time at the frame rate, ``seconds_per_profile`` apart),
+            ``"random"`` (a :class:`sodium.SodiumModel` draw, renewed every
+            ``random_every`` frames), ``"gaussian"`` (one layer at ``gaussian_centre_m``,
+            FWHM ``gaussian_fwhm_m``) or ``"explicit"`` (``altitude_m``/``density`` given).
+        turbulence: frozen-flow displacements (True) or a fixed shift (False).
+        fixed_shift_px: ``(sx, sy)`` pixels, the displacement of every spot when
+            ``turbulence`` is False.
+        noise: photon (and read/background, from the sensor) noise; False gives the
+            expected counts (use ``dtype="float32"`` on the sensor to keep them exact).
+        seed: int >= 0.
+        subtract_background: subtract the expected background from the counts.
+        per_field: ``sensor.photons`` counts the photons inside the field (see
+            :mod:`.detector`); default: per subaperture, truncated light lost.
+    """
+
+    profile: str = "uncentred"
+    measured_index: int = 0
+    seconds_per_profile: float = 1.0
+    random_every: int = 1
+    gaussian_centre_m: float = 90_000.0
+    gaussian_fwhm_m: float = 10_000.0
+    altitude_m: tuple | None = None
+    density: tuple | None = None
+    turbulence: bool = True
+    fixed_shift_px: tuple = (0.0, 0.0)
+    noise: bool = True
+    seed: int = 0
+    subtract_background: bool = True
+    per_field: bool = False
+
+    def __post_init__(self):
+        if self.altitude_m is not None:
+            object.__setattr__(self, "altitude_m", tuple(float(v) for v in self.altitude_m))
+        if self.density is not None:
+            object.__setattr__(self, "density", tuple(float(v) for v in self.density))
+        object.__setattr__(self, "fixed_shift_px", tuple(float(v) for v in self.fixed_shift_px))
+        p = []
+        if self.profile not in PROFILE_SOURCES:
+            p.append(f"profile must be one of {PROFILE_SOURCES}, got {self.profile!r}")
+        if self.profile == "explicit" and (self.altitude_m is None or self.density is None
+                                           or len(self.altitude_m) != len(self.density)):
+            p.append("profile='explicit' needs altitude_m and density of the same length")
+        if not (isinstance(self.seed, (int, np.integer)) and self.seed >= 0):
+            p.append(f"seed must be an integer >= 0, got {self.seed!r}")
+        if not (isinstance(self.random_every, (int, np.integer)) and self.random_every >= 1):
+            p.append(f"random_every must be an integer >= 1, got {self.random_every!r}")
+        if not (isinstance(self.measured_index, (int, np.integer)) and self.measured_index >= 0):
+            p.append(f"measured_index must be an integer >= 0, got {self.measured_index!r}")
+        if not self.seconds_per_profile > 0:
+            p.append("seconds_per_profile must be > 0")
+        if len(self.fixed_shift_px) != 2 or not all(math.isfinite(v) for v in self.fixed_shift_px):
+            p.append("fixed_shift_px must be two finite numbers (pixels)")
+        if p:
+            raise ValueError("invalid simulation config: " + "; ".join(p))
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        for k in ("altitude_m", "density", "fixed_shift_px"):
+            if d[k] is not None:
+                d[k] = list(d[k])
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SimulationConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    def replace(self, **changes) -> "SimulationConfig":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One simulated frame.
+
+    Attributes:
+        frame: ``(H, W)`` counts, ``sensor.dtype`` (uint16 or float32).
+        truth: ``(n_valid, 2)`` true displacements (x, y), pixels, detector axes.
+        index: frame number from 0.  time_s: ``index / frame_rate_hz``.
+        truncated: ``(n_valid,)`` fraction of each spot's light outside its field.
+        profile: ``(K,)`` density used (on ``altitude_m``).
+        altitude_m: ``(K,)`` altitude grid of ``profile``.
+        saturated: pixels clipped at 65535 (uint16).
+    """
+
+    frame: np.ndarray
+    truth: np.ndarray
+    index: int
+    time_s: float
+    truncated: np.ndarray
+    profile: np.ndarray
+    altitude_m: np.ndarray
+    saturated: int = 0
+
+
+class Simulator:
+    """Frames and truths for a sensor and a :class:`SimulationConfig`.
+
+    Args:
+        sensor: the sensor (full pupil or single subaperture).
+        config: what to simulate (default :class:`SimulationConfig`()).
+        sodium_model: the random-profile model for ``profile="random"`` (default
+            :func:`sodium.load_model`, loaded when first needed).
+        displacements: optional source of the true displacements when
+            ``config.turbulence`` is on: any object with ``tilts_at(index) -> (n_valid, 2)``
+            pixels (default a :class:`turbulence.FrozenFlow` seeded from ``config.seed``).
+    """
+
+    def __init__(self, sensor: Sensor, config: SimulationConfig | None = None, sodium_model=None,
+                 displacements=None):
+        if not isinstance(sensor, Sensor):
+            raise ValueError(f"sensor must be a Sensor, got {type(sensor).__name__}")
+        self.sensor = sensor
+        self.config = config if config is not None else SimulationConfig()
+        if not isinstance(self.config, SimulationConfig):
+            raise ValueError("config must be a SimulationConfig")
+        self.layout = layout(sensor)
+        ss = np.random.SeedSequence(self.config.seed)
+        turb_ss, prof_ss, noise_ss = ss.spawn(3)
+        self._noise_rng = np.random.default_rng(noise_ss)
+        self._profile_rng = np.random.default_rng(prof_ss)
+        self._turb_seed = turb_ss
+        self._turb = displacements
+        self._model = sodium_model
+        self._evolving = None
+        self._spots = None
+        self._spots_key = None
+        self._random_epoch = None
+        self.index = 0
+        self.altitude_m, self._static = self._profile_setup()
+
+    # -- profiles -----------------------------------------------------------------------
+    def _profile_setup(self):
+        c, h_ref = self.config, self.sensor.h_ref_m
+        if c.profile == "explicit":
+            return np.array(c.altitude_m), np.array(c.density)
+        if c.profile in ("measured", "evolving"):
+            h, prof = sodium.load_measured()
+            if c.profile == "evolving":
+                self._evolving = sodium.EvolvingProfile(h, prof, c.seconds_per_profile)
+                return h, None
+            if c.measured_index >= prof.shape[0]:
+                raise ValueError(f"measured_index {c.measured_index} >= {prof.shape[0]} profiles")
+            return h, prof[c.measured_index]
+        h = sodium.default_altitude_grid()
+        if c.profile == "centred":
+            return h, sodium.centred_profile(h, h_ref)
+        if c.profile == "uncentred":
+            return h, sodium.uncentred_profile(h, h_ref, pixel_scale_arcsec=self.sensor.pixel_scale_arcsec)
+        if c.profile == "gaussian":
+            return h, sodium.gaussian_profile(h, c.gaussian_centre_m, c.gaussian_fwhm_m)
+        return h, None                                                  # random
+
+    def model(self):
+        """The random-profile model (loaded on first use)."""
+        if self._model is None:
+            self._model = sodium.load_model()
+        return self._model
+
+    def profile_at(self, index: int) -> tuple[np.ndarray, object]:
+        """``(density (K,), key)`` for frame ``index``; ``key`` changes when it does."""
+        c = self.config
+        if self._static is not None:
+            return self._static, "static"
+        if c.profile == "evolving":
+            t = index / self.sensor.frame_rate_hz
+            return self._evolving.at(t), ("evolving", index)
+        epoch = index // c.random_every
+        if self._random_epoch != epoch:
+            self._random_epoch = epoch
+            self._random_profile = self.model().sample(self._profile_rng, 1, self.altitude_m)[0]
+        return self._random_profile, ("random", epoch)
+
+    # -- displacements -------------------------------------------------------------------
+    def truth_at(self, index: int) -> np.ndarray:
+        """``(n_valid, 2)`` true displacements of frame ``index`` (pixels, detector axes)."""
+        if not self.config.turbulence:
+            return np.broadcast_to(np.array(self.config.fixed_shift_px), (self.layout.n_valid, 2)).copy()
+        if self._turb is None:
+            from .turbulence import FrozenFlow
+            self._turb = FrozenFlow(self.sensor, self._turb_seed)
+        return self._turb.tilts_at(index)
+
+    # -- frames --------------------------------------------------------------------------
+    def spots(self, density, key, truth) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free ``(n_valid, p, p)`` images and truncation (model cached per profile)."""
+        need = float(np.abs(truth).max()) if truth.size else 0.0
+        if self._spots is None or key != self._spots_key or need > self._spots.max_shift_px:
+            margin = max(3.0, math.ceil(need) + 1.0)
+            lay = self.layout
+            self._spots = SpotModel(self.sensor, lay.r_m, lay.e, self.altitude_m, density, margin)
+            self._spots_key = key
+        return self._spots.images(truth)
+
+    def next(self) -> Frame:
+        """The next frame."""
+        i = self.index
+        truth = self.truth_at(i)
+        density, key = self.profile_at(i)
+        images, trunc = self.spots(density, key, truth)
+        s = self.sensor
+        counts, clipped = expose(images, s.photons, self._noise_rng, s.read_noise_e, s.background_e,
+                                 self.config.subtract_background, s.dtype,
+                                 noise_free=not self.config.noise, per_field=self.config.per_field,
+                                 return_clipped=True)
+        frame = stack_to_frame(counts, self.layout)
+        self.index += 1
+        return Frame(frame, truth, i, i / s.frame_rate_hz, trunc, density, self.altitude_m,
+                     clipped["saturated"])
+
+    __next__ = next
+
+    def __iter__(self):
+        return self
+
+    def frames(self, n: int):
+        """Iterator over the next ``n`` frames."""
+        if not (isinstance(n, (int, np.integer)) and n >= 0):
+            raise ValueError(f"n must be an integer >= 0, got {n!r}")
+        for _ in range(int(n)):
+            yield self.next()
+
+    def describe(self) -> dict:
+        """JSON-able description: the sensor fields plus the config (for the ``sensor`` topic)."""
+        d = self.sensor.to_dict()
+        d["simulation"] = self.config.to_dict()
+        return d
+
+    def subaperture_batch(self, rng: np.random.Generator, n: int, **kwargs):
+        """:func:`subaperture_batch` on this simulator's sensor (and sodium model)."""
+        kwargs.setdefault("model", self._model)
+        return subaperture_batch(self.sensor, rng, n, **kwargs)
+
+
+@dataclass(frozen=True, eq=False)
+class Batch:
+    """Training samples: ``images (n, p, p)``, ``truth (n, 2)`` px detector axes,
+    ``truncated (n,)``, ``photons (n,)`` expected photons used."""
+
+    images: np.ndarray
+    truth: np.ndarray
+    truncated: np.ndarray
+    photons: np.ndarray = field(default=None)
+
+
+def subaperture_batch(sensor: Sensor, rng: np.random.Generator, n: int, sigma_px: float = 0.5,
+                      model=None, altitude_m=None, density=None, photons=None, noise: bool = True,
+                      dtype: str = "float32", subap: int = 0, max_shift_px: float | None = None,
+                      chunk: int = 4096) -> Batch:
+    """``n`` single-subaperture images with random profiles and random positions.
+
+    Args:
+        sensor: the sensor; the subaperture is its valid subaperture ``subap`` (the only
+            one of ``Sensor.paper_single``): its ``r`` and ``e`` and the detector type.
+        rng: ``numpy.random.Generator`` (advanced).
+        n: number of samples.
+        sigma_px: rms per axis of the normal random positions, pixels (detector axes).
+        model: :class:`sodium.SodiumModel` for the random profiles (default
+            :func:`sodium.load_model`); ignored if ``density`` is given.
+        altitude_m: ``(K,)`` grid of the profiles (default :func:`sodium.default_altitude_grid`).
+        density: ``(K,)`` fixed profile or ``(n, K)`` profiles instead of random ones.
+        photons: expected photons per image: scalar, ``(n,)``, or None for ``sensor.photons``.
+        noise: Poisson/read noise on (the sensor's read noise and background apply).
+        dtype: output dtype of the images (``"float32"``, ``"float64"`` or ``"uint16"``).
+        max_shift_px: positions are drawn normal and clipped to this (default 6 sigma).
+        chunk: samples rendered at once (memory ``chunk x K`` for the profiles).
+    Returns:
+        :class:`Batch`; the same generator state gives the same batch bit for bit.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError("rng must be a numpy.random.Generator")
+    if not (isinstance(n, (int, np.integer)) and n >= 0):
+        raise ValueError(f"n must be an integer >= 0, got {n!r}")
+    if not (math.isfinite(sigma_px) and sigma_px >= 0):
+        raise ValueError("sigma_px must be finite and >= 0")
+    lay = layout(sensor)
+    if not 0 <= subap < lay.n_valid:
+        raise ValueError(f"subap must be in 0..{lay.n_valid - 1}")
+    h = sodium.default_altitude_grid() if altitude_m is None else np.asarray(altitude_m, float)
+    fixed = None if density is None else np.asarray(density, dtype=float)
+    if fixed is None and model is None:
+        model = sodium.load_model()
+    ph = sensor.photons if photons is None else photons
+    ph = np.broadcast_to(np.asarray(ph, dtype=float), (n,))
+    smax = 6.0 * sigma_px if max_shift_px is None else float(max_shift_px)
+    p = sensor.pixels
+    out = np.empty((n, p, p), dtype=dtype)
+    truth = np.empty((n, 2))
+    trunc = np.empty(n)
+    r = np.full(chunk, lay.r_m[subap])
+    e = np.broadcast_to(lay.e[subap], (chunk, 2))
+    for a in range(0, n, chunk):
+        b = min(n, a + chunk)
+        m = b - a
+        t = np.clip(rng.normal(0.0, sigma_px, size=(m, 2)), -smax, smax)
+        if fixed is None:
+            rho = model.sample(rng, m, h)
+        else:
+            rho = fixed if fixed.ndim == 1 else fixed[a:b]
+        spots = SpotModel(sensor, r[:m], e[:m], h, rho, max_shift_px=smax)
+        img, tr = spots.images(t)
+        out[a:b] = expose(img, ph[a:b], rng, sensor.read_noise_e, sensor.background_e, True,
+                          dtype, noise_free=not noise)
+        truth[a:b] = t
+        trunc[a:b] = tr
+    return Batch(out, truth, trunc, np.array(ph))
+
+
+__all__ = ["SimulationConfig", "Simulator", "Frame", "Batch", "subaperture_batch", "PROFILE_SOURCES"]
