@@ -51,7 +51,7 @@ class CentroiderNode(Node):
         parameters.declare(self, "cmf_update_period", 1, "cmf: frames between filter updates.",
                            low=1, high=100000)
         parameters.declare(self, "cmf_reference", "history", "cmf: where the reference comes from.",
-                           choices=("history", "static"))
+                           choices=("history", "model"))
         parameters.declare(self, "tcog_threshold", 0.0, "tcog: threshold in counts.",
                            low=0.0, high=65535.0)
         parameters.declare(self, "options", "{}", "Extra algorithm options as a JSON object.")
