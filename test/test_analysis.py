@@ -248,13 +248,19 @@ def _bad_files(tmp_path):
         w.add_topic("/wfs/true_slopes", "std_msgs/msg/String")
         w.write("/wfs/true_slopes", encode_string("not an image"), T0)
     files["wrong_schema"] = wrong
+    bare = tmp_path / "frames_only.mcap"
+    with BagWriter(bare) as w:           # frames but no sensor description and no truths
+        from lgs_wfs_ros.bags import encode_image
+        w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")
+        w.write("/wfs/frame", encode_image(np.zeros((16, 16), np.uint16), T0), T0)
+    files["frames_only"] = bare
     return files
 
 
 @pytest.mark.parametrize("verb", ["inspect", "report", "replay"])
 def test_cli_refuses_bad_bags(tmp_path, capsys, verb):
     for kind, path in _bad_files(tmp_path).items():
-        if verb == "inspect" and kind == "wrong_schema":
+        if verb == "inspect" and kind in ("wrong_schema", "frames_only"):
             continue                            # a valid MCAP file: inspect describes it
         args = [verb, str(path)] + (["--out", str(tmp_path / f"o_{kind}.mcap")] if verb == "replay" else [])
         code = cli.main(args)

@@ -92,3 +92,45 @@ def test_sample_bag_report(tmp_path, capsys):
     assert summary["algorithms"]["cog"]["ratio_to_crb"] > 1.0
     assert cli.main(["inspect", str(path)]) == 0
     assert "tcog" in capsys.readouterr().out
+
+
+def _cog_onnx(path, detector):
+    """A linear ONNX 'network' equal to CoG (sum-normalised pixels x pixel coordinates)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    y, x = np.indices((16, 16), dtype=np.float32)
+    w = np.stack([(x - 7.5).ravel(), (y - 7.5).ravel()], axis=1).astype(np.float32)
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["pixels", "W"], ["slopes"])], "cog",
+        [helper.make_tensor_value_info("pixels", TensorProto.FLOAT, [None, 256])],
+        [helper.make_tensor_value_info("slopes", TensorProto.FLOAT, [None, 2])],
+        [helper.make_tensor("W", TensorProto.FLOAT, w.shape, w.ravel())])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in {"pixels": 16, "detector": detector, "input_norm": "sum"}.items():
+        model.metadata_props.add(key=f"lgs_wfs.{k}", value=json.dumps(v))
+    onnx.save(model, path)
+
+
+def test_reproduce_runs_the_ann_columns(tmp_path, monkeypatch):
+    """With stand-in models (CoG in ONNX form) the ANN columns exist, equal CoG, and the
+    criteria are evaluated on them."""
+    models = tmp_path / "models"
+    models.mkdir()
+    _cog_onnx(models / "ann_1k.onnx", "polar")
+    _cog_onnx(models / "ann_diag.onnx", "cartesian")
+    monkeypatch.setenv("LGS_WFS_MODELS", str(models))
+    from lgs_wfs_ros.centroiding import ann
+    monkeypatch.setattr(ann, "model_dirs", lambda: [models])
+    cfg = reproduce.Config(photons=(316, 1000), iterations=60, run_seconds=0.1, crb_samples=3,
+                           cases=("turbulent", "diagonal"), label="tiny")
+    res = reproduce.run(cfg, tmp_path / "out", log=lambda *a: None)
+    sw = res["sweeps"]
+    for case, label in (("turbulent", "ANN 1k"), ("diagonal", "ANN diag")):
+        ann_err = sw[case]["algorithms"][label]["1000"]["mean_euclid"]
+        assert ann_err == pytest.approx(sw[case]["algorithms"]["CoG"]["1000"]["mean_euclid"], rel=1e-4)
+    anns = [r for r in res["tables12"] if r["paper_key"] == "ann"]
+    assert {r["algorithm"] for r in anns} == {"ANN 1k", "ANN diag"}
+    assert any("ANN 1k/CoG" in c["check"] and c["pass"] is False for c in res["checks"])
+    assert any("ANN noiseless skipped" in n for n in cfg.notes)

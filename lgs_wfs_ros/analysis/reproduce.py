@@ -207,7 +207,8 @@ def run_sweep(case: str, cfg: Config, log=print) -> dict:
     cents = build_centroiders(sensor, cfg.notes)
     cov1 = crb_unit(sensor, h, lambda k: rho, truths, cfg.crb_samples)
     res = {"case": case, **spec, "photons": list(cfg.photons), "iterations": t,
-           "truth_rms_px": [float(v) for v in truths.std(axis=0)], "algorithms": {}, "crb": {}}
+           "truth_rms_px": [float(v) for v in truths.std(axis=0)],
+           "truth_mean_abs_px": float(np.hypot(truths[:, 0], truths[:, 1]).mean()), "algorithms": {}, "crb": {}}
     for n in cfg.photons:
         t0 = time.perf_counter()
         frames = rng.poisson(images * n).astype(np.float32)
@@ -306,6 +307,9 @@ def checks(rows12: list, rows3: list) -> list[dict]:
             rel = r["ratio_cog_euclid"] / r["paper_ratio_cog"] - 1
             out.append({"check": f"case {r['case']}: CMF/CoG within 25 % of paper's {r['paper_ratio_cog']:.1%}",
                         "value": f"{r['ratio_cog_euclid']:.1%} ({rel:+.0%})", "pass": bool(abs(rel) <= 0.25)})
+    if rows12 and not any(r["paper_key"] == "ann" for r in rows12):
+        out.append({"check": "cases 1-4: ANN / CoG at or below the paper's ratio",
+                    "value": "not evaluated: no ANN model could be loaded (see the notes)", "pass": None})
     for det in ("polar", "cartesian"):
         ann = [r for r in rows3 if r["detector"] == det and r["algorithm"] == TABLE_ANN[det]]
         cog = [r for r in rows3 if r["detector"] == det and r["algorithm"] == "CoG"]
@@ -488,6 +492,17 @@ def departures(sweeps, vals, rows12) -> list[str]:
              "stationary spot reads as centred: with no turbulence it measures the truth (0) almost perfectly "
              "whatever the profile, which is why the CMF wins the untroubled cases; under turbulence the "
              "reference moves with the spot and the CMF loses most of the motion, as the paper observed.")
+    turb = sweeps.get("turbulent")
+    if turb:
+        d.append("**CMF under turbulence, and the size of the motion.** Since a 5-frame history at 700 Hz "
+                 "follows the spot, the paper-style CMF reports almost no motion and its error approaches the "
+                 f"spot's own displacement: here the mean |truth| is {turb['truth_mean_abs_px']:.2f} px "
+                 f"(rms {np.hypot(*turb['truth_rms_px']):.2f} px, the full open-loop G-tilt of r0 = 0.15 m at "
+                 "500 nm), and the CMF's error is close to it. The paper's CMF error in Table 1 (0.27-0.29 px) "
+                 "implies a smaller motion than that (its text only says 'limited to one pixel'; a closed-loop "
+                 "residual or r0 quoted at another wavelength would do it), so our CMF/CoG ratio in cases 1-2 "
+                 "is worse than the paper's. The CMF/CoG ratio under turbulence measures the turbulence "
+                 "amplitude more than the filter.")
     unc = sweeps.get("uncentred")
     if unc:
         top = str(max(unc["photons"]))
@@ -545,7 +560,7 @@ def run(cfg: Config, out_dir="docs", log=print) -> dict:
     log(format_tables(rows12, rows3))
     log("")
     for c in chk:
-        log(f"{'PASS' if c['pass'] else 'FAIL'}  {c['check']}: {c['value']}")
+        log(f"{'SKIP' if c['pass'] is None else 'PASS' if c['pass'] else 'FAIL'}  {c['check']}: {c['value']}")
     for n in cfg.notes:
         log("note: " + n)
     log(f"\nwrote {out / 'reproduction.md'} and {len(cfg.cases) + len(cfg.detectors)} figures in "
