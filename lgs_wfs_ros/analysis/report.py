@@ -104,9 +104,18 @@ def simulator_model(data: BagData):
     truths = data.truth.data[idx][:, lay.valid.ravel()].astype(float)
     frame_index = np.rint((data.truth.stamps[idx] - start) * data.sensor.frame_rate_hz / 1e9).astype(int)
     s = data.sensor
+    frame_index = np.maximum(frame_index, 0)
+    profiles = {}
+    if cfg.profile == "random" and frame_index.max() < 10**6:
+        wanted = set(frame_index.tolist())      # random draws are sequential: replay them in order
+        for i in range(int(frame_index.max()) + 1):
+            d = sim.profile_at(i)
+            if i in wanted:
+                profiles[i] = d
 
     def image_at(k, shift):
-        density, key = sim.profile_at(max(int(frame_index[k]), 0))
+        i = int(frame_index[k])
+        density, key = profiles[i] if i in profiles else sim.profile_at(i)
         img, _ = sim.spots(density, key, shift)
         if cfg.per_field:
             img = img / img.sum(axis=(1, 2), keepdims=True)
