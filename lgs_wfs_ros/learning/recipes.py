@@ -1,0 +1,117 @@
+"""The recipes of the shipped models: data, network, optimiser, seed (pure Python).
+
+Each :class:`Recipe` is everything :func:`lgs_wfs_ros.learning.train.train_model` needs to
+rebuild a model from scratch; its ``line()`` is printed before training and stored in the
+model's ``lgs_wfs.training`` metadata.
+
+Training positions: normal, ``SIGMA_TRAIN_PX`` = 0.6 px per axis, clipped at 4 sigma.
+The turbulence of the reference instrument (r0 = 0.15 m at 500 nm, d = 0.5 m) moves a
+spot by 0.46 px rms per axis (:func:`.dataset.turbulence_sigma_px`); training 30 % wider
+keeps the tails (|t| ~ 1.5 px, the paper's "limited to one pixel" histogram) well covered
+while still concentrating samples where turbulence puts them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+SIGMA_TRAIN_PX = 0.6
+PAPER_SIZES = (256, 16, 2)
+PUPIL_SIZES = (259, 64, 64, 2)
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How to train one model.
+
+    Attributes:
+        name: file stem in ``models/``.
+        detector: "polar" | "cartesian" (single-subaperture models) | "any" (pupil).
+        pupil: draw random valid subapertures of the default pupil (else the paper's
+            outermost subaperture, ``Sensor.paper_single(detector)``).
+        radius_m: single-subaperture models only: put the subaperture at this distance
+            from the launch (default: the outermost, 14.75 m), along +x (polar) or the
+            diagonal (cartesian).
+        photons: training photons per subaperture (None: noise-free).
+        sigma_px: training position rms per axis, px.
+        sizes: layer widths (input first).
+        conditioning: "none" | "e_r".
+        optimizer: "adam" | "lm".
+        samples: training samples (``quick`` runs use ``quick_samples``).
+        epochs, batch, lr: Adam settings (cosine-decayed learning rate).
+        lm_samples, lm_iterations: LM settings (fixed batch, Marquardt damping).
+        seed: data seed (training stream) and initialisation seed.
+        shipped: part of ``models/``.
+        note: one sentence for the README table.
+    """
+
+    name: str
+    detector: str
+    pupil: bool = False
+    radius_m: float | None = None
+    photons: float | None = 1000.0
+    sigma_px: float = SIGMA_TRAIN_PX
+    sizes: tuple = PAPER_SIZES
+    conditioning: str = "none"
+    optimizer: str = "adam"
+    samples: int = 200_000
+    quick_samples: int = 20_000
+    epochs: int = 40
+    batch: int = 512
+    lr: float = 3e-3
+    lm_samples: int = 12_000
+    lm_iterations: int = 60
+    seed: int = 1
+    shipped: bool = True
+    note: str = ""
+
+    def line(self, samples: int | None = None) -> str:
+        """The one-line recipe printed by ``lgs-wfs train``."""
+        ph = "noise-free" if self.photons is None else f"{self.photons:g} photons"
+        where = "random valid subapertures of the default pupil, both detectors" if self.pupil \
+            else f"{self.detector} subaperture at r = {self.radius_m or 14.75:g} m"
+        opt = (f"Adam lr {self.lr:g} cosine, batch {self.batch}, {self.epochs} epochs"
+               if self.optimizer == "adam" else
+               f"Levenberg-Marquardt on {self.lm_samples} samples, {self.lm_iterations} iterations")
+        return (f"{self.name}: MLP {'-'.join(map(str, self.sizes))} tanh (conditioning "
+                f"{self.conditioning}), {samples or self.samples} samples of random 5-Gaussian "
+                f"profiles, {where}, {ph}, positions N(0, {self.sigma_px:g} px), {opt}, "
+                f"seed {self.seed}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+RECIPES = {
+    "ann_1k": Recipe("ann_1k", "polar", photons=1000.0, seed=11,
+                     note="paper ANN 1k: polar, outermost subaperture, 1000 photons"),
+    "ann_noiseless": Recipe("ann_noiseless", "polar", photons=None, seed=12,
+                            note="paper ANN Noiseless: polar, outermost, no noise"),
+    "ann_diag": Recipe("ann_diag", "cartesian", photons=1000.0, seed=13,
+                       note="paper ANN Diag: cartesian, outermost diagonal, 1000 photons"),
+    "ann_pupil": Recipe("ann_pupil", "any", pupil=True, sizes=PUPIL_SIZES, conditioning="e_r",
+                        samples=400_000, epochs=30, batch=512, lr=2e-3, seed=14,
+                        note="one network for every valid subaperture, polar and cartesian, "
+                             "conditioned on (e, r/15); 1000 photons"),
+}
+
+# Dedicated single-subaperture networks for the ann_pupil criterion (not shipped): the
+# same recipe as ann_1k / ann_diag at the middle and innermost rings.
+for _det in ("polar", "cartesian"):
+    for _ring, _r in (("mid", 8.75), ("inner", 2.25)):
+        _n = f"ref_{_det}_{_ring}"
+        RECIPES[_n] = Recipe(_n, _det, radius_m=_r, photons=1000.0, seed=20 + len(RECIPES),
+                             shipped=False, note=f"reference: {_det}, r = {_r} m, 1000 photons")
+
+SHIPPED = tuple(k for k, v in RECIPES.items() if v.shipped)
+
+
+def get(name: str) -> Recipe:
+    """The recipe called ``name`` (``ValueError`` naming the choices otherwise)."""
+    if name not in RECIPES:
+        raise ValueError(f"unknown model {name!r}; choose one of {', '.join(RECIPES)}")
+    return RECIPES[name]
+
+
+__all__ = ["Recipe", "RECIPES", "SHIPPED", "get", "SIGMA_TRAIN_PX"]

@@ -1,0 +1,189 @@
+"""Training pipeline: dataset generator, ONNX export, recipes, and tiny training runs."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros.learning import dataset, export, recipes
+from lgs_wfs_ros.learning.model import forward, n_parameters
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.optics.spots import spot_images
+from lgs_wfs_ros.sensor import Sensor
+
+
+def test_import_without_torch():
+    code = ("import sys\n"
+            "class Block:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'torch' or name.startswith('torch.'):\n"
+            "            raise ImportError('torch blocked')\n"
+            "sys.meta_path.insert(0, Block())\n"
+            "import lgs_wfs_ros.learning as L\n"
+            "from lgs_wfs_ros.learning import dataset, export, recipes, validate, train\n"
+            "assert 'torch' not in sys.modules\n"
+            "print(sorted(L.SHIPPED))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "ann_pupil" in out.stdout
+
+
+def test_sample_shapes_normalisation_and_reproducibility():
+    spec = dataset.DataSpec(Sensor.paper_single("polar"), photons=1000.0, sigma_px=0.5)
+    a = dataset.sample(spec, np.random.default_rng(3), 64, input_gain=256.0)
+    b = dataset.sample(spec, np.random.default_rng(3), 64, input_gain=256.0)
+    assert a.x.shape == (64, 256) and a.x.dtype == np.float32
+    assert a.y.shape == (64, 2) and a.cond.shape == (64, 3) and a.images.shape == (64, 16, 16)
+    np.testing.assert_allclose(a.x.sum(axis=1), 256.0, rtol=1e-5)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.y, b.y)
+    c = dataset.sample(spec, np.random.default_rng(4), 64)
+    assert not np.array_equal(a.y, c.y)
+    # photon counts: integers summing to about 1000 (Poisson)
+    tot = a.images.reshape(64, -1).sum(axis=1)
+    assert np.all(a.images == np.round(a.images))
+    assert abs(tot.mean() - 1000) < 4 * math.sqrt(1000 / 64) + 30   # truncation loses a little
+    # positions: N(0, 0.5) per axis
+    big = dataset.sample(spec, np.random.default_rng(5), 4000)
+    assert abs(big.y.std() - 0.5) < 0.03 and abs(big.y.mean()) < 0.03
+
+
+def test_pupil_mode_mixes_detectors_and_conditions_on_pixel_axes():
+    spec = dataset.DataSpec(Sensor(), photons=None, pupil=True, conditioning="e_r")
+    s = dataset.sample(spec, np.random.default_rng(0), 2000)
+    lay = geometry.layout(Sensor())
+    polar_like = np.all(s.cond[:, :2] == np.array([1, 0], np.float32), axis=1)
+    assert 0.4 < polar_like.mean() < 0.6                      # half polar (e_pix = (1, 0))
+    np.testing.assert_allclose(np.hypot(s.cond[:, 0], s.cond[:, 1]), 1.0, atol=1e-6)
+    r = s.cond[:, 2] * dataset.R_SCALE_M
+    assert r.min() >= lay.r_m.min() - 1e-4 and r.max() <= lay.r_m.max() + 1e-4
+    np.testing.assert_allclose(s.x.sum(axis=1), 1.0, rtol=1e-5)    # noise-free, gain 1
+
+
+def test_polar_sample_equals_simulator_local_frame_image():
+    """The dataset renders polar blocks as cartesian blocks with e = (1, 0): same image."""
+    sensor = Sensor(detector="polar", single_subaperture_xy_m=(6.0, 8.0))   # e not along x
+    lay = geometry.layout(sensor)
+    spec = dataset.DataSpec(sensor, photons=None, sigma_px=0.5)
+    h = dataset.training_altitude_grid()
+    rho = np.exp(-0.5 * ((h - 91e3) / 3e3) ** 2)
+    t_local = np.array([[0.3, -0.2]])
+    s = dataset.sample(spec, np.random.default_rng(0), 1, density=rho, shift_px=t_local)
+    t_det = geometry.local_to_detector(t_local, lay.e)
+    ref, _ = spot_images(sensor, lay.r_m, lay.e, h, rho, t_det)
+    np.testing.assert_allclose(s.images[0], ref[0], atol=1e-6)
+
+
+def test_dataspec_rejects_bad_input():
+    with pytest.raises(ValueError):
+        dataset.DataSpec(Sensor.paper_single("polar"), photons=-1)
+    with pytest.raises(ValueError):
+        dataset.DataSpec(Sensor(), pupil=False)
+    with pytest.raises(ValueError):
+        dataset.DataSpec(Sensor.paper_single("polar"), pupil=True)
+    with pytest.raises(ValueError):
+        dataset.DataSpec(Sensor.paper_single("polar"), conditioning="xyz")
+    spec = dataset.DataSpec(Sensor.paper_single("polar"))
+    with pytest.raises(ValueError):
+        dataset.sample(spec, 3, 10)
+    with pytest.raises(ValueError):
+        dataset.sample(spec, np.random.default_rng(0), 0)
+
+
+def test_stream_batches_are_reproducible():
+    spec = dataset.DataSpec(Sensor.paper_single("cartesian"), photons=316.0)
+    a = dataset.generate(spec, 300, batch=128, seed=9, progress=False)
+    b = list(dataset.stream(spec, 300, batch=128, seed=9, progress=False))
+    assert [len(x) for x in b] == [128, 128, 44]
+    np.testing.assert_array_equal(a["x"][128:256], b[1].x)
+
+
+def test_turbulence_sigma_matches_kolmogorov_formula():
+    # 0.17 (lambda/d)^2 (d/r0)^(5/3) with lambda = 500 nm, d = 0.5 m, r0 = 0.15 m
+    s = dataset.turbulence_sigma_px(Sensor())
+    assert s == pytest.approx(math.sqrt(0.17 * 1e-12 * (0.5 / 0.15) ** (5 / 3)) * 206264.8 / 0.5, rel=1e-4)
+    assert 0.4 < s < 0.5
+
+
+@pytest.mark.parametrize("cond,rotate", [("none", False), ("e_r", False), ("e_r", True)])
+def test_export_matches_numpy_forward(cond, rotate):
+    ort = pytest.importorskip("onnxruntime")
+    rng = np.random.default_rng(1)
+    nc = export.CONDITIONING_WIDTH[cond]
+    sizes = (256 + nc, 8, 5, 2)
+    layers = [(rng.normal(0, 0.3, (a, b)), rng.normal(0, 0.1, b)) for a, b in zip(sizes[:-1], sizes[1:])]
+    model = export.build_model(layers, pixels=16, conditioning=cond, input_gain=256.0,
+                               metadata={"lgs_wfs.detector": "polar"}, rotate_to_local=rotate)
+    sess = export.session(model.SerializeToString())
+    img = rng.random((20, 16, 16))
+    c = None
+    if nc:
+        ang = rng.uniform(0, 2 * np.pi, 20)
+        c = np.stack([np.cos(ang), np.sin(ang), rng.random(20)], axis=1)
+    got = export.predict(sess, img, c)
+    x = img.reshape(20, -1) / img.reshape(20, -1).sum(1, keepdims=True) * 256.0
+    want = forward(layers, x if c is None else np.concatenate([x, c], axis=1))
+    if rotate:
+        ex, ey = c[:, 0], c[:, 1]
+        want = np.stack([ex * want[:, 0] + ey * want[:, 1], ex * want[:, 1] - ey * want[:, 0]], 1)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+    meta = {p.key: json.loads(p.value) for p in model.metadata_props}
+    assert meta["lgs_wfs.pixels"] == 16 and meta["lgs_wfs.conditioning"] == cond
+    assert meta["lgs_wfs.detector"] == "polar" and meta["lgs_wfs.input_norm"] == "sum"
+
+
+def test_export_rejects_bad_layers():
+    with pytest.raises(ValueError):
+        export.build_model([(np.zeros((256, 3)), np.zeros(3))], pixels=16)      # 3 outputs
+    with pytest.raises(ValueError):
+        export.build_model([(np.zeros((250, 2)), np.zeros(2))], pixels=16)      # wrong width
+    with pytest.raises(ValueError):
+        export.build_model([(np.zeros((256, 2)), np.zeros(2))], pixels=16, conditioning="q")
+
+
+def test_recipes_are_complete():
+    assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil"}
+    assert n_parameters(recipes.PAPER_SIZES) == 4146
+    for name in recipes.SHIPPED:
+        r = recipes.get(name)
+        assert name in r.line() and f"seed {r.seed}" in r.line()
+    with pytest.raises(ValueError):
+        recipes.get("nope")
+
+
+def test_tiny_adam_training_reduces_error():
+    torch = pytest.importorskip("torch")
+    from lgs_wfs_ros.learning import train
+    from lgs_wfs_ros.learning.model import mlp
+    torch.set_num_threads(1)
+    rec = recipes.get("ann_1k")
+    d = train.training_data(rec, 3000, seed=5, progress=False)
+    m = train.training_data(rec, 500, seed=6, progress=False)
+    x, y = torch.from_numpy(d["x"]), torch.from_numpy(d["y"])
+    xv, yv = torch.from_numpy(m["x"]), torch.from_numpy(m["y"])
+    net = mlp((256, 16, 2), seed=0)
+    before = train._mean_error(net, xv, yv)
+    hist = train.fit_adam(net, x, y, xv, yv, epochs=6, batch=128, lr=3e-3, seed=0, progress=False)
+    assert hist[-1]["train_mse"] < hist[0]["train_mse"]
+    assert train._mean_error(net, xv, yv) < 0.7 * before
+
+
+def test_levenberg_marquardt_reduces_loss_and_jacobian_is_right():
+    torch = pytest.importorskip("torch")
+    from lgs_wfs_ros.learning import lm
+    from lgs_wfs_ros.learning.model import mlp
+    torch.manual_seed(0)
+    net = mlp((6, 4, 2), seed=1)
+    x = torch.randn(50, 6)
+    y = torch.stack([x[:, 0] * 0.5 + x[:, 1].tanh(), x[:, 2] - x[:, 3] * 0.3], 1)
+    theta = lm.pack(net)
+    jtj, jtr, sse0 = lm.normal_equations(theta, (6, 4, 2), x, y)
+    # J^T r is half the gradient of the sum of squares
+    th = theta.clone().float().requires_grad_(True)
+    _, out = lm._forward(th, (6, 4, 2), x)
+    ((out - y) ** 2).sum().backward()
+    np.testing.assert_allclose(2 * jtr.numpy(), th.grad.double().numpy(), rtol=1e-3, atol=1e-4)
+    hist = lm.fit(net, x, y, iterations=15, progress=False)
+    assert hist[-1]["mse"] < 0.2 * sse0 / y.numel()
