@@ -1,0 +1,105 @@
+"""Simulator speed: full 60 x 60 frames (2,784 valid, 1000 photons, turbulence on).
+
+    python benchmarks/bench_simulator.py [--quick]
+
+Reports frames/s on one core for the cartesian and the polar detector, the time per frame
+of each stage (turbulence, spots, noise, assembly), the one-off cost of a new profile
+(SpotModel build: what a per-frame evolving/random profile pays every frame) and the
+rate of :func:`subaperture_batch` (training samples/s). Median of several repeats.
+"""
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from lgs_wfs_ros.optics.detector import expose  # noqa: E402
+from lgs_wfs_ros.optics.geometry import stack_to_frame  # noqa: E402
+from lgs_wfs_ros.optics.simulator import SimulationConfig, Simulator, subaperture_batch  # noqa: E402
+from lgs_wfs_ros.optics.spots import SpotModel  # noqa: E402
+from lgs_wfs_ros.sensor import Sensor  # noqa: E402
+
+
+def _median(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _detector_rows(detector, repeats):
+    s = Sensor(detector=detector)
+    sim = Simulator(s, SimulationConfig(profile="uncentred", seed=1))
+    sim.next()                                            # screens, spot model, caches
+    t_frame = _median(sim.next, repeats)
+    lay = sim.layout
+    idx = [sim.index]
+
+    def turb():
+        idx[0] += 1
+        return sim.truth_at(idx[0])
+
+    t_turb = _median(turb, repeats)
+    truth = sim.truth_at(idx[0])
+    density, key = sim.profile_at(0)
+    model = sim._spots
+    t_spots = _median(lambda: model.images(truth), repeats)
+    images, _ = model.images(truth)
+    rng = np.random.default_rng(0)
+    t_noise = _median(lambda: expose(images, s.photons, rng, dtype=s.dtype), repeats)
+    counts = expose(images, s.photons, rng, dtype=s.dtype)
+    t_asm = _median(lambda: stack_to_frame(counts, lay), repeats)
+    t_build = _median(lambda: SpotModel(s, lay.r_m, lay.e, sim.altitude_m, density, 3.0),
+                      max(2, repeats // 3))
+    ms = lambda t: round(t * 1e3, 3)  # noqa: E731
+    note = (f"{lay.n_valid} valid subaps, 1000 photons, frozen-flow turbulence; per frame: "
+            f"turbulence {ms(t_turb)} ms, spots {ms(t_spots)} ms, noise {ms(t_noise)} ms, "
+            f"assembly {ms(t_asm)} ms")
+    return [
+        {"name": f"full frame {detector}", "value": 1.0 / t_frame, "unit": "frames/s",
+         "target": ">= 100", "note": note},
+        {"name": f"  turbulence ({detector})", "value": ms(t_turb), "unit": "ms/frame",
+         "target": "", "note": "FrozenFlow.tilts_at: G-tilts of 2,784 subapertures"},
+        {"name": f"  spots ({detector})", "value": ms(t_spots), "unit": "ms/frame",
+         "target": "", "note": "SpotModel.images: node sums with exact pixel integration (erf)"},
+        {"name": f"  noise ({detector})", "value": ms(t_noise), "unit": "ms/frame",
+         "target": "", "note": "expose: exact Poisson on pixels with > 1e-9 expected photons"},
+        {"name": f"  assembly ({detector})", "value": ms(t_asm), "unit": "ms/frame",
+         "target": "", "note": "stack_to_frame"},
+        {"name": f"  new profile ({detector})", "value": ms(t_build), "unit": "ms",
+         "target": "", "note": "SpotModel build (paid per frame by evolving/random-every-frame)"},
+    ]
+
+
+def _batch_rows(repeats):
+    rows = []
+    for det in ("polar", "cartesian"):
+        s = Sensor.paper_single(det)
+        n = 8192
+        rng = np.random.default_rng(0)
+        t = _median(lambda: subaperture_batch(s, rng, n, sigma_px=0.5), max(1, repeats // 3))
+        rows.append({"name": f"subaperture_batch {det}", "value": n / t, "unit": "samples/s",
+                     "target": "1e6 samples in minutes",
+                     "note": "random 5-Gaussian profile + normal position + Poisson, 16x16"})
+    return rows
+
+
+def run(quick: bool = False) -> list[dict]:
+    repeats = 5 if quick else 15
+    rows = []
+    for det in ("cartesian", "polar"):
+        rows += _detector_rows(det, repeats)
+    rows += _batch_rows(repeats)
+    return rows
+
+
+if __name__ == "__main__":
+    for r in run(quick="--quick" in sys.argv):
+        print(f"{r['name']:<34} {r['value']:>12.4g} {r['unit']:<10} target {r['target']:<22} {r['note']}")
