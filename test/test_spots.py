@@ -243,7 +243,7 @@ def test_centre_subaperture_r0_is_exact_gaussian_and_inputs_untouched():
     edges = np.arange(p + 1) - 0.5 - (p - 1) / 2
     gx = np.diff(ndtr((edges - 0.25) / sig))
     gy = np.diff(ndtr((edges + 0.5) / sig))
-    np.testing.assert_allclose(img[0], np.outer(gy, gx), atol=1e-13)
+    np.testing.assert_allclose(img[0], np.outer(gy, gx), atol=1e-7)       # core table accuracy
     assert tr[0] < 1e-12
 
 

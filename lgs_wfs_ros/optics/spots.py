@@ -31,6 +31,7 @@ per frame only the shift changes. :func:`spot_images` is the one-call form.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
@@ -198,6 +199,29 @@ def _elements(h: np.ndarray, rho: np.ndarray, refine: int):
     h_c = h[:-1] + frac * d
     mass = mass / mass.sum(axis=-1, keepdims=True)
     return h_c, var, mass
+
+
+TABLE_STEP_PX = 1.0 / 2048  # pixel-integrated core table step (interpolation error < 4e-8)
+
+
+@lru_cache(maxsize=8)
+def _pixel_core_table(sigma_px: float):
+    """``P(z) = Phi((z + 1/2)/sigma) - Phi((z - 1/2)/sigma)``, the light of a core centred
+    at ``-z`` px in a pixel, tabulated on ``[z0, -z0]`` every ``TABLE_STEP_PX``.
+
+    Returns ``(P, dP, z0, 1/step)``; ``P[i] + f dP[i]`` interpolates linearly (max error
+    ``step^2 / 8 max|P''|`` < 4e-8 of the spot's light for the 1.19 px core); the table
+    ends where ``P`` < 1e-11, and indices beyond it clip to those ends.
+    """
+    z0 = -(0.5 + CORE_SIGMAS * sigma_px + 1.0)
+    z = z0 + TABLE_STEP_PX * np.arange(int(round(-2 * z0 / TABLE_STEP_PX)) + 2)
+    tab = ndtr((z + 0.5) / sigma_px) - ndtr((z - 0.5) / sigma_px)
+    tab[[0, -1]] = 0.0
+    dtab = np.append(np.diff(tab), 0.0)
+    tab[-1] = 0.0
+    for a in (tab, dtab):
+        a.setflags(write=False)
+    return tab, dtab, z0, 1.0 / TABLE_STEP_PX
 
 
 # ---------------------------------------------------------------------------------------
@@ -373,9 +397,15 @@ class SpotModel:
             gmin = emin[:, 1:] - emin[:, :-1]                         # (g, p)
             line = np.matmul(w[:, None, :], gmaj)[:, 0, :]            # (g, p)
             return gmin[:, :, None] * line[:, None, :]                # rows local y, cols local x
-        b = c + g["b"] + s_min[:, None]                               # (g, K)
-        emin = ndtr((jm[None, None, :] - b[:, :, None]) / sig)      # (g, K, p + 1)
-        gmin = (emin[:, :, 1:] - emin[:, :, :-1]) * w[:, :, None]
+        gmaj *= w[:, :, None]
+        # minor axis: the pixel-integrated core from a fine table (linear interpolation)
+        tab, dtab, z0, inv_h = _pixel_core_table(sig)
+        b = (c + g["b"] + s_min[:, None] + z0) * inv_h                 # (g, K), table units
+        y = (np.arange(p) * inv_h)[None, None, :] - b[:, :, None]     # (g, K, p)
+        i = y.astype(np.intp)
+        y -= i
+        gmin = tab.take(i, mode="clip")
+        gmin += y * dtab.take(i, mode="clip")
         im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major)
         return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
 
