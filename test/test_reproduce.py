@@ -27,19 +27,16 @@ def test_paper_numbers_are_consistent():
 
 
 def test_gtilt_series_statistics():
-    """Frozen-flow G-tilt of a 0.5 m subaperture for r0 = 0.15 m: the one-axis rms is near
-    the theoretical G-tilt (0.17 arcsec -> ~0.34 px at 0.5"/px; here within a factor 1.5
-    since a short series under-samples the large scales) and consecutive frames at 700 Hz
-    are strongly correlated."""
+    """Frozen-flow G-tilt of the 0.5 m subaperture for r0 = 0.15 m: the one-axis rms is near
+    the theoretical G-tilt (within 30 %: a 7 s series under-samples the largest scales) and
+    consecutive frames at 700 Hz are strongly correlated."""
+    from lgs_wfs_ros.optics.turbulence import turbulence_sigma_px
     s = Sensor.paper_single("polar")
-    t = reproduce.gtilt_series(s, 3000, seed=3)
-    assert t.shape == (3000, 2) and np.isfinite(t).all()
-    sigma_theory = 0.42 * s.r0_wavelength_m / s.subap_pitch_m ** (1 / 6) / s.r0_m ** (5 / 6) \
-        / s.pixel_scale_rad                                 # Tyler's G-tilt, one axis
+    t = reproduce.gtilt_series(s, 5000, seed=3)
+    assert t.shape == (5000, 2) and np.isfinite(t).all()
     rms = t.std(axis=0).mean()
-    assert sigma_theory / 1.6 < rms < sigma_theory * 1.6
-    corr = np.corrcoef(t[:-1, 0], t[1:, 0])[0, 1]
-    assert corr > 0.95
+    assert 0.7 * turbulence_sigma_px(s) < rms < 1.3 * turbulence_sigma_px(s)
+    assert np.corrcoef(t[:-1, 0], t[1:, 0])[0, 1] > 0.95
 
 
 def test_tiny_reproduction(tmp_path):

@@ -324,31 +324,15 @@ def _log(stamp_ns, log_ns):
     return int(stamp_ns if log_ns is None else log_ns)
 
 
-class _Tilts:
-    """Adapter: a precomputed ``(F, n, 2)`` displacement series with ``tilts_at(index)``."""
-
-    def __init__(self, series):
-        self.series = series
-
-    def tilts_at(self, index):
-        return self.series[index]
-
-
 def simulate(sensor: Sensor, frames: int, seed: int = 0, profile: str = "evolving", **config):
     """``(frames (F, H, W), truths (F, n, 2) px, sensor extra dict)`` from the library's simulator.
 
-    profile and config: :class:`~lgs_wfs_ros.optics.simulator.SimulationConfig` fields. For
-    the single-subaperture sensor with turbulence the displacements come from
-    :func:`.reproduce.gtilt_series` (frozen flow on an aotools screen).
+    profile and config: :class:`~lgs_wfs_ros.optics.simulator.SimulationConfig` fields.
     """
     from ..optics.simulator import SimulationConfig, Simulator
 
     cfg = SimulationConfig(seed=seed, profile=profile, **config)
-    disp = None
-    if sensor.is_single and cfg.turbulence:
-        from .reproduce import gtilt_series
-        disp = _Tilts(gtilt_series(sensor, frames, seed)[:, None, :])
-    sim = Simulator(sensor, cfg, displacements=disp)
+    sim = Simulator(sensor, cfg)
     imgs, truths = [], []
     for fr in sim.frames(frames):
         imgs.append(fr.frame)

@@ -98,33 +98,12 @@ def case_profile(name: str, h: np.ndarray) -> np.ndarray:
 
 
 def gtilt_series(sensor: Sensor, frames: int, seed: int) -> np.ndarray:
-    """``(frames, 2)`` true spot displacements (px) of the single subaperture under one
-    frozen-flow Kolmogorov layer (r0 at ``sensor.r0_wavelength_m``, wind
-    ``sensor.wind_speed_mps`` along +y) at ``sensor.frame_rate_hz``.
+    """``(frames, 2)`` true spot displacements (px) of the single subaperture: the library's
+    frozen-flow Kolmogorov layer (:class:`..optics.turbulence.FrozenFlow`: r0, wind and frame
+    rate from the sensor; exact G-tilt of the subaperture)."""
+    from ..optics.turbulence import FrozenFlow
 
-    aotools' infinite Kolmogorov screen, 16 samples across the subaperture, moved one
-    sample row at a time; the G-tilt is the mean phase gradient over the subaperture
-    (difference of the mean phase on opposite edges), linearly interpolated in time.
-    """
-    from aotools.turbulence.infinitephasescreen import PhaseScreenKolmogorov
-
-    m = 16
-    dx = sensor.subap_pitch_m / m
-    step = sensor.wind_speed_mps / sensor.frame_rate_hz / dx        # screen rows per frame
-    rows = int(math.ceil(frames * step)) + 2
-    screen = PhaseScreenKolmogorov(2 * m, dx, sensor.r0_m, 100.0, random_seed=int(seed))
-    lo, hi = m // 2, m // 2 + m
-    scale = sensor.r0_wavelength_m / (2 * math.pi) / sensor.pixel_scale_rad   # rad/m -> px
-    tilt = np.empty((rows, 2))
-    for k in range(rows):
-        s = screen.add_row() if k else screen.scrn
-        win = s[lo:hi + 1, lo:hi + 1]
-        gx = (win[:, -1] - win[:, 0]).mean() / (m * dx)
-        gy = (win[-1, :] - win[0, :]).mean() / (m * dx)
-        tilt[k] = (gx * scale, gy * scale)
-    pos = np.arange(frames) * step
-    tilt -= tilt.mean(axis=0)
-    return np.stack([np.interp(pos, np.arange(rows), tilt[:, a]) for a in (0, 1)], axis=1)
+    return FrozenFlow(sensor, int(seed)).tilts(int(frames))[:, 0, :]
 
 
 def expected_images(sensor: Sensor, h, density, truths) -> np.ndarray:
@@ -421,8 +400,9 @@ def write_markdown(path: Path, cfg: Config, sweeps: dict, vals: dict, rows12, ro
          f"- Photon levels {', '.join(str(n) for n in cfg.photons)}; {cfg.iterations} frames per level and case "
          "(the paper: 10,000). Frames are fed to every algorithm one by one, in time order.",
          "- Turbulence: one frozen-flow Kolmogorov layer, r0 = 0.15 m at 500 nm, 10 m/s, 700 Hz "
-         "(aotools infinite phase screen; G-tilt of the subaperture). Measured spot rms: "
-         + ", ".join(f"{c} {np.hypot(*sweeps[c]['truth_rms_px']):.2f} px" for c in sweeps if sweeps[c]["turbulence"]) + ".",
+         "(`optics.turbulence.FrozenFlow`, exact G-tilt of the subaperture; theory: "
+         f"{_sigma_theory():.2f} px per axis). Spot rms in this run: "
+         + ", ".join(f"{c} {sweeps[c]['truth_rms_px'][0]:.2f} / {sweeps[c]['truth_rms_px'][1]:.2f} px (x / y)" for c in sweeps if sweeps[c]["turbulence"]) + ".",
          "- CoG: plain centre of gravity. CMF: Gilles & Ellerbroek constrained matched filter as the paper ran it "
          "(reference = mean of the last 5 frames incl. the current one, 0.02 px dither derivatives, refreshed "
          "every frame, noise weights from the image). ANN: the shipped ONNX models (`models/`).",
@@ -460,6 +440,11 @@ def write_markdown(path: Path, cfg: Config, sweeps: dict, vals: dict, rows12, ro
     path.write_text("\n".join(L) + "\n")
 
 
+def _sigma_theory() -> float:
+    from ..optics.turbulence import turbulence_sigma_px
+    return turbulence_sigma_px(Sensor.paper_single("polar"))
+
+
 def departures(sweeps, vals, rows12) -> list[str]:
     d = []
     ideal = sweeps.get("ideal")
@@ -483,10 +468,7 @@ def departures(sweeps, vals, rows12) -> list[str]:
     d.append("**Turbulence.** The paper's phase screens and their time behaviour in the photon sweeps are "
              "unspecified ('spot movement limited to one pixel'); we use a 10 m/s frozen-flow layer at 700 Hz "
              "so that the CMF's 5-frame history sees realistic, correlated motion. The cartesian figure "
-             "caption says 'no turbulence' while the text and Tables 1-2 say turbulence; we use turbulence. "
-             "The library's `optics.turbulence.FrozenFlow` did not finish building for a single-subaperture "
-             "sensor in 4 minutes when this was written, so the sweep uses aotools' infinite phase screen "
-             "directly (same statistics, G-tilt over the 0.5 m subaperture).")
+             "caption says 'no turbulence' while the text and Tables 1-2 say turbulence; we use turbulence.")
     d.append("**CMF reference.** With the paper's history reference (mean of the last 5 frames, including the "
              "current one) a matched filter measures the displacement relative to the recent mean spot, so a "
              "stationary spot reads as centred: with no turbulence it measures the truth (0) almost perfectly "
