@@ -449,6 +449,24 @@ def _pow2_at_least(n: float) -> int:
     return 1 << max(3, int(math.ceil(math.log2(max(n, 1)))))
 
 
+def _edge_means(v: np.ndarray, f: float, m: int, g: int) -> np.ndarray:
+    """Trapezoid means along axis 0 of ``v`` shifted by ``f`` samples, per lattice segment.
+
+    ``w[l] = v[l] + f (v[l+1] - v[l])`` for ``l = 0 .. g*m``; returns the ``(g, ...)``
+    trapezoid means of ``w`` over ``[i*m, (i+1)*m]`` (float64), from one block sum of ``v``
+    (``w`` is never formed: the sums are linear in ``v``).
+    """
+    lo = np.arange(g) * m
+    hi = lo + m
+    block = v[:g * m].reshape((g, m) + v.shape[1:]).sum(axis=1, dtype=float)  # sum v[lo:hi]
+    v_lo, v_lo1, v_hi, v_hi1 = (v[i].astype(float) for i in (lo, lo + 1, hi, hi + 1))
+    # sum_{l=lo}^{hi} w[l] = (1-f) sum_{lo}^{hi} v + f sum_{lo+1}^{hi+1} v
+    total = block + v_hi + f * (v_hi1 - v_lo)
+    w_lo = v_lo + f * (v_lo1 - v_lo)
+    w_hi = v_hi + f * (v_hi1 - v_hi)
+    return (total - 0.5 * (w_lo + w_hi)) / m
+
+
 class FrozenFlow:
     """One frozen-flow turbulent layer at the pupil; true spot displacements per frame.
 
@@ -545,6 +563,8 @@ class FrozenFlow:
         d, g = self.d, self.g
         centre = (np.arange(g) + 0.5) * d                             # lattice coords of centres
         self._mode_ex = np.exp(2j * np.pi * np.outer(k[:, 0], centre))   # (K, G)
+        self._mode_ex_re = np.ascontiguousarray(self._mode_ex.real)
+        self._mode_ex_im = np.ascontiguousarray(self._mode_ex.imag)
         self._mode_ey = np.exp(2j * np.pi * np.outer(k[:, 1], centre)).T.copy()  # (G, K)
         avg = np.sinc(k[:, 0] * d) * np.sinc(k[:, 1] * d)
         self._mode_a = (2j * np.pi * k * (c * avg)[:, None]) * self._scale   # (K, 2) px
@@ -555,17 +575,19 @@ class FrozenFlow:
         turns = np.mod(self._mode_kstep * float(frame), 1.0)
         z = np.exp(-2j * np.pi * turns)                               # (K,)
         w = z[:, None] * self._mode_a                                 # (K, 2)
-        tx = ((self._mode_ey * w[:, 0]) @ self._mode_ex).real
-        ty = ((self._mode_ey * w[:, 1]) @ self._mode_ex).real
-        return np.stack([tx, ty], axis=-1)
+        left = (self._mode_ey[None, :, :] * w.T[:, None, :]).reshape(2 * self.g, -1)  # (2G, K)
+        # Re(L @ Ex) as two real GEMMs (half the flops of a complex one), both axes at once.
+        t = (left.real @ self._mode_ex_re - left.imag @ self._mode_ex_im).reshape(2, self.g, self.g)
+        return np.moveaxis(t, 0, -1)
 
     # -- tilts ---------------------------------------------------------------------------------
     def _shift(self, frame: int):
-        u = -np.asarray(frame, dtype=float) * self._step_px          # torus px (x, y)
+        u = -float(frame) * self._step_px                             # torus px (x, y)
         i = np.floor(u)
         f = u - i
-        snap = np.isclose(f, 1.0, rtol=0, atol=1e-9)
-        i, f = np.where(snap, i + 1, i), np.where(snap | (f < 1e-9), 0.0, f)
+        up = f > 1.0 - 1e-9                                           # snap rounding noise
+        i = np.where(up, i + 1, i)
+        f = np.where(up | (f < 1e-9), 0.0, f)
         return int(i[0]), int(i[1]), float(f[0]), float(f[1])
 
     def _torus_tilts(self, frame: int) -> np.ndarray:
@@ -581,17 +603,15 @@ class FrozenFlow:
         n = g * m + 2
         win = self._padded[iy % ny: iy % ny + n, ix % nx: ix % nx + n]   # (n, n) view
         # Vertical edges (x on the lattice, every y sample): columns j*m and j*m + 1.
-        a = win[:, 0:n - 1:m].astype(float)                          # (n, g+1)
-        v = a + fx * (win[:, 1:n:m] - a)
-        v = v[:-1] + fy * (v[1:] - v[:-1])                           # (g*m+1, g+1)
-        ev = v[:-1].reshape(g, m, g + 1).sum(axis=1) + 0.5 * (v[m::m] - v[0:-1:m])
-        tx = (ev[:, 1:] - ev[:, :-1]) / (m * d)                      # (g, g)
+        a = win[:, 0:n - 1:m]
+        v = a + fx * (win[:, 1:n:m] - a)                              # (n, g+1), x-shifted
+        ev = _edge_means(v, fy, m, g)                                 # (g, g+1)
+        tx = (ev[:, 1:] - ev[:, :-1]) / d                             # (g, g)
         # Horizontal edges (y on the lattice, every x sample): rows i*m and i*m + 1.
-        a = win[0:n - 1:m].astype(float)                             # (g+1, n)
-        h = a + fy * (win[1:n:m] - a)
-        h = h[:, :-1] + fx * (h[:, 1:] - h[:, :-1])                  # (g+1, g*m+1)
-        eh = h[:, :-1].reshape(g + 1, g, m).sum(axis=2) + 0.5 * (h[:, m::m] - h[:, 0:-1:m])
-        ty = (eh[1:] - eh[:-1]) / (m * d)                            # (g, g)
+        a = win[0:n - 1:m]
+        h = a + fy * (win[1:n:m] - a)                                 # (g+1, n), y-shifted
+        eh = _edge_means(h.T, fx, m, g).T                             # (g+1, g)
+        ty = (eh[1:] - eh[:-1]) / d                                   # (g, g)
         return np.stack([tx, ty], axis=-1)
 
     def tilts_at(self, frame: int) -> np.ndarray:
