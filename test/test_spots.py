@@ -80,7 +80,7 @@ def test_cog_equals_shift_on_half_pixel_grid(detector):
     if detector == "polar":                 # the grid is on the pixel axes: local frame
         shifts = local_to_detector(shifts, e)
     img, trunc = spot_images(s, r, e, h, rho, shifts)
-    assert np.all(trunc < 1e-9)
+    assert np.all(trunc < 1e-6)                       # float32 rounding of the sums
     err = cog_detector(img, s, e) - shifts
     assert np.abs(err).max() < 1e-4, np.abs(err).max()
 
@@ -210,7 +210,7 @@ def test_truncation_flagged_and_counted(detector):
                              np.stack([wide, compact, compact]),
                              np.array([[0, 0], [0, 0], [8.0, 3.0]]))
     assert trunc[0] > 0.02
-    assert trunc[1] < 1e-9
+    assert trunc[1] < 1e-6
     assert trunc[2] > 0.3                                            # shifted off the field
     np.testing.assert_allclose(img.sum(axis=(1, 2)), 1 - trunc, atol=1e-12)
     ref = brute(s, np.repeat(lay.r_m, 1), lay.e, h, wide, np.zeros((1, 2)))
@@ -244,7 +244,7 @@ def test_centre_subaperture_r0_is_exact_gaussian_and_inputs_untouched():
     gx = np.diff(ndtr((edges - 0.25) / sig))
     gy = np.diff(ndtr((edges + 0.5) / sig))
     np.testing.assert_allclose(img[0], np.outer(gy, gx), atol=1e-7)       # core table accuracy
-    assert tr[0] < 1e-12
+    assert tr[0] < 1e-6
 
 
 def test_model_reuse_and_shift_limit():

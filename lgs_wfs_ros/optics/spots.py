@@ -34,7 +34,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
+from numpy.lib.stride_tricks import as_strided, sliding_window_view
 from scipy.special import ndtr
 
 from ..sensor import Sensor
@@ -219,6 +219,7 @@ def _pixel_core_table(sigma_px: float):
     tab[[0, -1]] = 0.0
     dtab = np.append(np.diff(tab), 0.0)
     tab[-1] = 0.0
+    tab, dtab = tab.astype(np.float32), dtab.astype(np.float32)
     for a in (tab, dtab):
         a.setflags(write=False)
     return tab, dtab, z0, 1.0 / TABLE_STEP_PX
@@ -386,18 +387,21 @@ class SpotModel:
         a0 = c + g["a0"] + s_maj
         q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
         v = ndtr((q[None, :] - a0[:, None]) / sig)
+        jm = np.arange(p + 1) - 0.5
+        if self.polar:
+            # cumulative light of the line at the p + 1 pixel edges: a correlation of V with w
+            win = sliding_window_view(v, nk, axis=1)[:, ::m][:, :p + 1]   # (g, p + 1, K)
+            cum = np.matmul(win, w[:, ::-1, None])[:, :, 0]
+            line = cum[:, 1:] - cum[:, :-1]                              # (g, p) along local x
+            b = c + s_min
+            emin = ndtr((jm[None, :] - b[:, None]) / sig)
+            gmin = emin[:, 1:] - emin[:, :-1]                             # (g, p) along local y
+            return gmin[:, :, None] * line[:, None, :]                    # rows local y, cols local x
         st = v.strides
         edges = as_strided(v[:, nk - 1:], shape=(v.shape[0], nk, p + 1),
                            strides=(st[0], -st[1], m * st[1]), writeable=False)
-        gmaj = edges[:, :, 1:] - edges[:, :, :-1]                  # (g, K, p)
-        jm = np.arange(p + 1) - 0.5
-        if self.polar:
-            b = c + s_min
-            emin = ndtr((jm[None, :] - b[:, None]) / sig)
-            gmin = emin[:, 1:] - emin[:, :-1]                         # (g, p)
-            line = np.matmul(w[:, None, :], gmaj)[:, 0, :]            # (g, p)
-            return gmin[:, :, None] * line[:, None, :]                # rows local y, cols local x
-        gmaj *= w[:, :, None]
+        gmaj = (edges[:, :, 1:] - edges[:, :, :-1]) * w[:, :, None]      # (g, K, p)
+        gmaj = gmaj.astype(np.float32)
         # minor axis: the pixel-integrated core from a fine table (linear interpolation)
         tab, dtab, z0, inv_h = _pixel_core_table(sig)
         b = (c + g["b"] + s_min[:, None] + z0) * inv_h                 # (g, K), table units
@@ -405,8 +409,8 @@ class SpotModel:
         i = y.astype(np.intp)
         y -= i
         gmin = tab.take(i, mode="clip")
-        gmin += y * dtab.take(i, mode="clip")
-        im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major)
+        gmin += y.astype(np.float32) * dtab.take(i, mode="clip")
+        im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
         return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
 
 
