@@ -153,33 +153,14 @@ MAX_ELEMENT_NODES = 0.35  # altitude cells are split (or merged) so each spans a
 LIGHT_CUT = 1e-12         # light beyond these cumulative fractions at either end is dropped
 
 
-def _merge(h_c, var_h, mass, k: int):
-    """Merge runs of ``k`` consecutive elements, keeping their mass, mean and variance."""
-    j = h_c.shape[-1] // k * k
-    rest = h_c.shape[-1] - j
+def _elements(h: np.ndarray, rho: np.ndarray, refine: int = 1, merge: int = 1):
+    """A piecewise-linear density as point elements with exact mass, mean and variance.
 
-    def grp(a):
-        a = np.broadcast_to(a, mass.shape)
-        head = a[..., :j].reshape(a.shape[:-1] + (-1, k))
-        return head, a[..., j:]
+    Every altitude cell is split in ``refine`` (linear interpolation of the density), then
+    runs of ``merge`` consecutive cells are joined into one element.
 
-    (hm, ht), (vm, vt), (mm, mt) = grp(h_c), grp(var_h), grp(mass)
-    m = mm.sum(-1)
-    safe = np.where(m > 0, m, 1.0)
-    mean = np.where(m > 0, (mm * hm).sum(-1) / safe, hm.mean(-1))
-    var = np.where(m > 0, (mm * (vm + (hm - mean[..., None]) ** 2)).sum(-1) / safe, 0.0)
-    if rest:
-        return (np.concatenate([mean, ht], -1), np.concatenate([var, vt], -1),
-                np.concatenate([m, mt], -1))
-    return mean, var, m
-
-
-def _elements(h: np.ndarray, rho: np.ndarray, refine: int):
-    """Cells of a piecewise-linear density as point elements.
-
-    Returns ``(h_c (..., J), var_h (..., J), mass (..., J))``: each cell's light-weighted mean
-    altitude, its variance about it (m^2) and its mass (normalised to a total of 1).
-    ``refine`` splits every cell in that many (linear interpolation of the density).
+    Returns ``(h_c (..., J), var_h (..., J), mass (..., J))``: each element's light-weighted
+    mean altitude (m), its variance about it (m^2) and its mass (total 1).
     """
     if refine > 1:
         hf = np.concatenate([np.linspace(h[i], h[i + 1], refine, endpoint=False)
@@ -189,16 +170,33 @@ def _elements(h: np.ndarray, rho: np.ndarray, refine: int):
         h = hf
     d = np.diff(h)
     r0, r1 = rho[..., :-1], rho[..., 1:]
-    tot = r0 + r1
-    mass = 0.5 * tot * d
-    safe = np.where(tot > 0, tot, 1.0)
-    frac = np.where(tot > 0, (r0 + 2 * r1) / (3 * safe), 0.5)       # mean position in the cell
-    # variance of a linear density on [0, 1]: E[t^2] - E[t]^2, E[t^2] = (r0 + 3 r1) / (6 (r0 + r1))
-    e2 = np.where(tot > 0, (r0 + 3 * r1) / (6 * safe), 1 / 3)
-    var = (e2 - frac ** 2) * d ** 2
-    h_c = h[:-1] + frac * d
-    mass = mass / mass.sum(axis=-1, keepdims=True)
-    return h_c, var, mass
+    m0 = (r0 + r1) * (d / 2)                       # mass of each cell
+    m1 = (r0 + 2 * r1) * (d ** 2 / 6)              # first moment about the cell start
+    m2 = (r0 + 3 * r1) * (d ** 3 / 12)             # second moment about the cell start
+    start = h[:-1]
+    ncell = d.size
+    j = ncell // merge * merge
+    if merge > 1:
+        def grp(a):
+            return a[..., :j].reshape(a.shape[:-1] + (-1, merge))
+
+        g0 = start[:j].reshape(-1, merge)[:, 0]
+        off = start[:j].reshape(-1, merge) - g0[:, None]           # (J, merge)
+        a0, a1, a2 = grp(m0), grp(m1), grp(m2)
+        big0 = a0.sum(-1)
+        big1 = (a1 + a0 * off).sum(-1)
+        big2 = (a2 + 2 * off * a1 + off ** 2 * a0).sum(-1)
+        if j < ncell:
+            big0 = np.concatenate([big0, m0[..., j:]], -1)
+            big1 = np.concatenate([big1, m1[..., j:]], -1)
+            big2 = np.concatenate([big2, m2[..., j:]], -1)
+            g0 = np.concatenate([g0, start[j:]])
+    else:
+        big0, big1, big2, g0 = m0, m1, m2, start
+    safe = np.where(big0 > 0, big0, 1.0)
+    mean = big1 / safe
+    var = np.maximum(big2 / safe - mean ** 2, 0.0)
+    return g0 + mean, var, big0 / big0.sum(axis=-1, keepdims=True)
 
 
 TABLE_STEP_PX = 1.0 / 2048  # pixel-integrated core table step (interpolation error < 4e-8)
@@ -274,9 +272,7 @@ class SpotModel:
         span = (np.diff(h) * dgdh[:-1]).max() * (self.r_m / step).max(initial=0.0)
         refine = int(min(64, max(1, math.ceil(span / MAX_ELEMENT_NODES))))
         merge = int(min(h.size, max(1, math.floor(MAX_ELEMENT_NODES / max(span, 1e-300)))))
-        h_c, var_h, mass = _elements(h, rho, refine)
-        if merge > 1:
-            h_c, var_h, mass = _merge(h_c, var_h, mass, merge)
+        h_c, var_h, mass = _elements(h, rho, refine, merge if refine == 1 else 1)
         # where the light is (cumulative in (LIGHT_CUT, 1 - LIGHT_CUT)), per profile
         cum = np.cumsum(mass, axis=-1)
         inside = (cum > LIGHT_CUT) & (cum - mass < 1 - LIGHT_CUT)
