@@ -164,10 +164,11 @@ def test_von_karman_reduces_tilt_variance():
     assert np.mean(ratios) < 0.8
 
 
-@pytest.mark.parametrize("direction,shift", [(0.0, (0, 1)), (90.0, (1, 0)), (180.0, (0, -1))])
-def test_frozen_flow_moves_the_screen(direction, shift):
-    """Frame k+35 at subaperture (i, j) equals frame k at (i, j) - shift (0.5 m at 10 m/s, 700 Hz)."""
-    sensor = small_sensor(wind_direction_deg=direction)
+@pytest.mark.parametrize("direction,speed,shift", [(0.0, 10.0, (0, 1)), (90.0, 10.0, (1, 0)),
+                                                   (180.0, 10.0, (0, -1)), (45.0, 10 * math.sqrt(2), (1, 1))])
+def test_frozen_flow_moves_the_screen(direction, speed, shift):
+    """Frame k+35 at subaperture (i, j) equals frame k at (i, j) - shift (0.5 m per axis at 700 Hz)."""
+    sensor = small_sensor(wind_direction_deg=direction, wind_speed_mps=speed)
     ff = T.FrozenFlow(sensor, 11, period_m=32.0)
     lay = layout(sensor)
     pos = {tuple(ij): n for n, ij in enumerate(lay.index)}
