@@ -223,6 +223,32 @@ def _pixel_core_table(sigma_px: float):
     return tab, dtab, z0, 1.0 / TABLE_STEP_PX
 
 
+@lru_cache(maxsize=8)
+def _core_cdf_table(sigma_px: float):
+    """``Phi(z / sigma)`` on ``[z0, -z0]`` every ``TABLE_STEP_PX`` and its increments."""
+    z0 = -(CORE_SIGMAS * sigma_px + 1.0)
+    z = z0 + TABLE_STEP_PX * np.arange(int(round(-2 * z0 / TABLE_STEP_PX)) + 1)
+    tab = ndtr(z / sigma_px)
+    tab[0], tab[-1] = 0.0, 1.0
+    dtab = np.append(np.diff(tab), 0.0)
+    for a in (tab, dtab):
+        a.setflags(write=False)
+    return tab, dtab, z0, 1.0 / TABLE_STEP_PX
+
+
+def _core_cdf(z: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``Phi(z / sigma)`` by linear interpolation in a fine table (error < 3e-8; 0 and 1
+    beyond 6.5 sigma + 1 px, where the exact value is within 1e-11 of them)."""
+    tab, dtab, z0, inv_h = _core_cdf_table(sigma_px)
+    y = (z - z0) * inv_h
+    np.clip(y, 0.0, tab.size - 1, out=y)
+    i = y.astype(np.intp)
+    y -= i
+    out = tab.take(i)
+    out += y * dtab.take(i)
+    return out
+
+
 # ---------------------------------------------------------------------------------------
 # the spot model
 # ---------------------------------------------------------------------------------------
@@ -382,7 +408,7 @@ class SpotModel:
         # major axis: Phi at edge e - 1/2 of node k = V[m e - k + K - 1]
         a0 = c + g["a0"] + s_maj
         q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
-        v = ndtr((q[None, :] - a0[:, None]) / sig)
+        v = _core_cdf(q[None, :] - a0[:, None], sig)
         jm = np.arange(p + 1) - 0.5
         if self.polar:
             # cumulative light of the line at the p + 1 pixel edges: a correlation of V with w
