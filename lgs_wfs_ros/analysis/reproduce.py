@@ -555,7 +555,7 @@ def departures(sweeps, vals, rows12, rows3=()) -> list[str]:
     d.append("**Table 3 profiles.** The paper used 'a portion of the measured profiles over a few seconds'; "
              "which portion is unknown. We start at profile 66 of the 88 LZT profiles shipped with the package: "
              "profiles 0-65 are the ones the project's networks were trained on, 66-87 are held out. "
-             "Those measured profiles sit near h_ref: the untruncated CoG bias they give this subaperture "
+             "Those measured profiles sit closer to h_ref than the uncentred case: the untruncated CoG bias they give this subaperture "
              "ranges over " + (", ".join(f"{det} {v['profile_cog_bias_px'][0]:+.2f}..{v['profile_cog_bias_px'][1]:+.2f} px"
                                       for det, v in vals.items()) if vals else "a small interval")
              + ", against the 0.45-0.47 px the paper's CoG column implies, so our CoG errors in Table 3 are far "
