@@ -199,7 +199,7 @@ def _elements(h: np.ndarray, rho: np.ndarray, refine: int = 1, merge: int = 1):
     return g0 + mean, var, big0 / big0.sum(axis=-1, keepdims=True)
 
 
-TABLE_STEP_PX = 1.0 / 2048  # pixel-integrated core table step (interpolation error < 4e-8)
+TABLE_STEP_PX = 1.0 / 2048  # core table step, a power of 2 (interpolation error < 4e-8)
 
 
 @lru_cache(maxsize=8)
@@ -367,6 +367,7 @@ class SpotModel:
             e_min = np.where(major_y, e[:, 0], e[:, 1])
         return {
             "idx": idx, "w": np.ascontiguousarray(w), "major_y": major_y,
+            "w32": np.ascontiguousarray(w, dtype=np.float32),
             "a0": u[:, 0] * e_maj,                                   # major coord of node 0
             "b": u * e_min[:, None],                                 # minor coords (g, K)
         }
@@ -419,19 +420,22 @@ class SpotModel:
             emin = ndtr((jm[None, :] - b[:, None]) / sig)
             gmin = emin[:, 1:] - emin[:, :-1]                             # (g, p) along local y
             return gmin[:, :, None] * line[:, None, :]                    # rows local y, cols local x
+        v = v.astype(np.float32)
         st = v.strides
         edges = as_strided(v[:, nk - 1:], shape=(v.shape[0], nk, p + 1),
                            strides=(st[0], -st[1], m * st[1]), writeable=False)
-        gmaj = (edges[:, :, 1:] - edges[:, :, :-1]) * w[:, :, None]      # (g, K, p)
-        gmaj = gmaj.astype(np.float32)
-        # minor axis: the pixel-integrated core from a fine table (linear interpolation)
+        gmaj = np.subtract(edges[:, :, 1:], edges[:, :, :-1])            # (g, K, p) float32
+        gmaj *= g["w32"][:, :, None]
+        # minor axis: the pixel-integrated core from a fine table. The table index of pixel
+        # j for node k is j / step + Y_k (integers) and the interpolation fraction phi_k is
+        # the same for all pixels of a node.
         tab, dtab, z0, inv_h = _pixel_core_table(sig)
-        b = (c + g["b"] + s_min[:, None] + z0) * inv_h                 # (g, K), table units
-        y = (np.arange(p) * inv_h)[None, None, :] - b[:, :, None]     # (g, K, p)
-        i = y.astype(np.intp)
-        y -= i
+        t = -(c + g["b"] + s_min[:, None] + z0) * inv_h                  # (g, K)
+        y0 = np.floor(t)
+        phi = (t - y0).astype(np.float32)[:, :, None]
+        i = y0.astype(np.intp)[:, :, None] + (np.arange(p) * int(inv_h))[None, None, :]
         gmin = tab.take(i, mode="clip")
-        gmin += y.astype(np.float32) * dtab.take(i, mode="clip")
+        gmin += phi * dtab.take(i, mode="clip")
         im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
         return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
 
