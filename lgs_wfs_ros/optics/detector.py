@@ -28,7 +28,7 @@ def _photon_map(images, photons, per_field: bool) -> np.ndarray:
     img = np.asarray(images, dtype=float)
     if img.ndim < 2:
         raise ValueError(f"images must be (..., p, p), got shape {img.shape}")
-    if not np.all(np.isfinite(img)) or np.any(img < 0):
+    if img.size and not (img.min() >= 0 and np.isfinite(img.max())):   # NaN fails both
         raise ValueError("images must be finite and >= 0")
     ph = np.asarray(photons, dtype=float)
     if not np.all(np.isfinite(ph)) or np.any(ph < 0):
@@ -95,8 +95,11 @@ def expose(images, photons, rng: np.random.Generator | None = None, read_noise_e
         counts = poisson(lam, rng, floor)
         integer = read_noise_e == 0 and not (subtract_background and background_e > 0)
         if integer and dtype == "uint16":                 # fast path: no float round trip
-            sat = int(np.count_nonzero(counts > UINT16_MAX))
-            out = np.minimum(counts, UINT16_MAX).astype(np.uint16)
+            sat = 0
+            if counts.size and counts.max() > UINT16_MAX:
+                sat = int(np.count_nonzero(counts > UINT16_MAX))
+                counts = np.minimum(counts, UINT16_MAX)
+            out = counts.astype(np.uint16)
             return (out, {"saturated": sat, "negative": 0}) if return_clipped else out
         counts = counts.astype(float)
         if read_noise_e > 0:
