@@ -244,8 +244,8 @@ def test_frozen_flow_full_pupil_default_sensor():
     ff = T.FrozenFlow(s, 0)
     t = ff.next_tilts()
     assert t.shape == (layout(s).n_valid, 2)
-    assert ff.period_m == (64.0, 128.0) and ff.period_frames == pytest.approx(128.0 / (10 / 700))
-    assert ff.nbytes < 100e6
+    assert ff.period_m == (64.0, 256.0) and ff.period_frames == pytest.approx(256.0 / (10 / 700))
+    assert ff.nbytes < 64 * 2 ** 20
 
 
 def test_frozen_flow_bad_input():
