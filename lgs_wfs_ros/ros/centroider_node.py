@@ -66,7 +66,15 @@ class CentroiderNode(Node):
         self._last_stamp = None
         self.sensor = self._initial_sensor()
         self.layout = geometry.layout(self.sensor)
-        self.centroider = self._build(self._settings())
+        self.centroider = None
+        try:
+            self.centroider = self._build(self._settings())
+        except ValueError as exc:
+            if self.get_parameter("algorithm").value not in ALGORITHMS:
+                raise
+            # e.g. a polar-only model on the default (cartesian) sensor: the real sensor
+            # description usually arrives on the sensor topic a moment later.
+            self.get_logger().warning(f"waiting for a sensor this algorithm can run on: {exc}")
 
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
@@ -133,6 +141,8 @@ class CentroiderNode(Node):
             self._announce("parameter change")
 
     def _announce(self, why: str):
+        if self.centroider is None:
+            return
         try:
             desc = self.centroider.describe()
         except Exception as exc:  # describe() must never take the node down
@@ -185,6 +195,9 @@ class CentroiderNode(Node):
             if self._last_stamp is not None:
                 period_ns = 1e9 / self.sensor.frame_rate_hz
                 self.counters.dropped += max(0, int(round((stamp_ns - self._last_stamp) / period_ns)) - 1)
+            if self.centroider is None:
+                self._reject("no centroider yet: the algorithm cannot run on the current sensor")
+                return
             self._last_stamp = stamp_ns
             slopes = self.centroider.centroid(image)
             grid = geometry.slopes_to_grid(slopes, self.layout)
@@ -213,6 +226,8 @@ def main(args=None):
         pass
     finally:
         if node is not None:
+            c = node.counters
+            print(f"centroider_node: final counts {json.dumps(c.as_dict())}", flush=True)
             node.destroy_node()
         rclpy.try_shutdown()
     return code

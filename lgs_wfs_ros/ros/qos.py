@@ -1,19 +1,21 @@
 """QoS per topic of the contract (docs/conventions.md section 5).
 
 What may drop and what may not:
-- ``frame``: reliable, keep last 10. A slow subscriber can still lose frames (a reliable KEEP_LAST
-  writer overwrites what the reader has not taken); the centroider counts the gaps by stamp.
-- ``true_slopes`` and ``slopes``: reliable, keep last 100: small (28.8 kB), so a deep history
-  absorbs a slow recorder for ~0.14 s at 700 Hz.
+- ``frame``: reliable, keep last 100 (0.14 s at 700 Hz). A subscriber stalled longer than that
+  still loses frames (a reliable KEEP_LAST writer overwrites what the reader has not taken);
+  the centroider counts the gaps by stamp. The depth absorbs scheduling stalls of a loaded
+  2-core machine, which a depth of 10 (14 ms) did not.
+- ``true_slopes`` and ``slopes``: reliable, keep last 1000: small (28.8 kB full pupil), so a
+  deep history absorbs a slow recorder for ~1.4 s at 700 Hz.
 - ``sensor`` and ``centroider``: reliable, keep last 1, transient local, so a late joiner (the
   recorder, a centroider started later) still gets the current description.
 """
 
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
-FRAME = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+FRAME = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-SLOPES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+SLOPES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,

@@ -164,6 +164,15 @@ class SimulatorNode(Node):
         self._stop.wait(delay)
 
     def _run(self):
+        try:
+            self._publish_frames()
+        except Exception as exc:   # a dying context at shutdown, or a simulator bug: say so
+            if not self._stop.is_set():
+                self.get_logger().error(f"simulation stopped: {exc!r}")
+        finally:
+            self.finished.set()
+
+    def _publish_frames(self):
         self._wait_to_start()
         stamp_ns = time.time_ns()
         due = time.monotonic()
@@ -192,7 +201,6 @@ class SimulatorNode(Node):
                 self.get_logger().warning(f"simulation runs {-delay:.1f} s behind {rate:g} Hz")
                 due = time.monotonic()
         self.get_logger().info(f"published {self.published} frames")
-        self.finished.set()
 
     def stop(self):
         self._stop.set()

@@ -1,0 +1,53 @@
+"""End to end, in separate processes: simulator -> centroiders -> recorder -> bag -> analysis."""
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros import bags
+from lgs_wfs_ros.analysis import metrics
+from lgs_wfs_ros.centroiding import make_centroider, resolve_model
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.ros.demo import check_complete, run_case
+from lgs_wfs_ros.sensor import Sensor
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+
+def _algorithms():
+    algs = ["cog", "wcog", "cmf"]
+    try:
+        resolve_model("ann_1k")
+        algs.append("ann")
+    except ValueError:
+        pass
+    return algs
+
+
+def test_paper_case_at_700_hz_loses_nothing_and_matches_the_library(tmp_path):
+    pytest.importorskip("rclpy")
+    frames, algs = 350, _algorithms()
+    bag = tmp_path / "e2e.mcap"
+    counts = run_case("single", bag, frames, 700.0, algs, frame_every=1)
+    assert check_complete(counts, frames, 1, algs) == []
+
+    reader = bags.BagReader(bag)
+    stamps, images = reader.images("/wfs/frame")
+    t_stamps, truths = reader.images("/wfs/true_slopes")
+    assert np.array_equal(stamps, t_stamps) and len(set(stamps)) == frames
+    sensor = Sensor.from_json(reader.strings("/wfs/sensor")[0][1])
+    lay = geometry.layout(sensor)
+    truth = truths[:, lay.valid]
+
+    errs = {}
+    for alg in algs:
+        s_stamps, grids = reader.images(f"/{alg}/slopes")
+        assert np.array_equal(s_stamps, stamps)
+        live = grids[:, lay.valid]
+        opts = {"model": "ann_1k"} if alg == "ann" else {}
+        lib = make_centroider(alg, sensor, **opts)
+        offline = np.stack([lib.centroid(f) for f in images])
+        # the same frames give the same slopes live and offline (float32 on the wire)
+        np.testing.assert_allclose(live, offline, atol=2e-5, equal_nan=True)
+        errs[alg] = metrics.summarize(live - truth)["mean_euclid"]
+    print(errs)
+    assert all(np.isfinite(v) for v in errs.values())
