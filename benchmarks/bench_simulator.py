@@ -25,12 +25,12 @@ from lgs_wfs_ros.optics.spots import SpotModel  # noqa: E402
 from lgs_wfs_ros.sensor import Sensor  # noqa: E402
 
 
-def _median(fn, repeats):
+def _median(fn, repeats, clock=time.perf_counter):
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return float(np.median(times))
 
 
@@ -39,6 +39,7 @@ def _detector_rows(detector, repeats):
     sim = Simulator(s, SimulationConfig(profile="uncentred", seed=1))
     sim.next()                                            # screens, spot model, caches
     t_frame = _median(sim.next, repeats)
+    t_cpu = _median(sim.next, repeats, time.process_time)     # robust to a loaded machine
     lay = sim.layout
     idx = [sim.index]
 
@@ -65,6 +66,9 @@ def _detector_rows(detector, repeats):
     return [
         {"name": f"full frame {detector}", "value": 1.0 / t_frame, "unit": "frames/s",
          "target": ">= 100", "note": note},
+        {"name": f"full frame {detector} (CPU time)", "value": 1.0 / t_cpu, "unit": "frames/s",
+         "target": ">= 100", "note": "same, timed with process_time (excludes waiting for a "
+                                      "core on a shared machine)"},
         {"name": f"  turbulence ({detector})", "value": ms(t_turb), "unit": "ms/frame",
          "target": "", "note": "FrozenFlow.tilts_at: G-tilts of 2,784 subapertures"},
         {"name": f"  spots ({detector})", "value": ms(t_spots), "unit": "ms/frame",
