@@ -283,7 +283,7 @@ class SpotModel:
 
     # -- construction -----------------------------------------------------------------
     def _build(self, rho):
-        sensor, p, m = self.sensor, self.sensor.pixels, NODES_PER_PX
+        sensor, p = self.sensor, self.sensor.pixels
         h = self.altitude_m
         if self.polar:
             e_maj = np.ones(self.n)
@@ -291,6 +291,11 @@ class SpotModel:
         else:
             major_y = np.abs(self.e[:, 1]) > np.abs(self.e[:, 0])
             e_maj = np.where(major_y, self.e[:, 1], self.e[:, 0])
+        # nodes per pixel: 4 for long lines, more for short ones (whose error does not
+        # average out over many node phases; their extra nodes are few)
+        span = self._light_span_px(rho)
+        m = np.where(span < 1.5, 4 * NODES_PER_PX, np.where(span < 5.0, 2 * NODES_PER_PX,
+                                                             NODES_PER_PX)).astype(np.int64)
         step = 1.0 / (m * np.abs(e_maj))                      # node spacing along e, px
         cz = math.cos(math.radians(sensor.zenith_deg))
         # elements: split or merge altitude cells to about MAX_ELEMENT_NODES nodes each
@@ -316,16 +321,35 @@ class SpotModel:
         count = hi - lo + 1
         g_c = cz * (1.0 / sensor.h_ref_m - 1.0 / h_c) / sensor.pixel_scale_rad   # px per m of r
         dg_c = cz / h_c ** 2 / sensor.pixel_scale_rad
-        order = np.argsort(count, kind="stable")
         self.groups = []
-        for idx in np.array_split(order, min(N_GROUPS, max(self.n, 1))):
-            if idx.size == 0:
-                continue
+        for idx in self._grouping(m, count):
             k = int(count[idx].max()) + 3                              # nodes lo-1 .. lo+K+1
             k0 = lo[idx] - 1
             alpha = self.r_m[idx] / step[idx]                           # nodes per (px per m of r)
             w = self._deposit(alpha, k0, k, g_c, dg_c, var_h, mass, idx if rho.ndim == 2 else None)
-            self.groups.append(self._group(idx, k0, w, step[idx], e_maj[idx], major_y[idx]))
+            grp = self._group(idx, k0, w, step[idx], e_maj[idx], major_y[idx])
+            grp["m"] = int(m[idx[0]])
+            self.groups.append(grp)
+
+    def _light_span_px(self, rho) -> np.ndarray:
+        """``(n,)`` length (px along e) of the part of each line holding the light."""
+        h, s = self.altitude_m, self.sensor
+        c = np.cumsum(0.5 * (rho[..., 1:] + rho[..., :-1]) * np.diff(h), axis=-1)
+        c = c / c[..., -1:]
+        i_lo = np.argmax(c > 1e-6, axis=-1)
+        i_hi = np.argmax(c >= 1 - 1e-6, axis=-1) + 1
+        g = math.cos(math.radians(s.zenith_deg)) * (1.0 / h[i_lo] - 1.0 / h[i_hi]) / s.pixel_scale_rad
+        return self.r_m * np.abs(g)
+
+    def _grouping(self, m, count):
+        """Index groups: same nodes per pixel, similar node counts (at most N_GROUPS each)."""
+        out = []
+        for mv in np.unique(m):
+            sel = np.flatnonzero(m == mv)
+            order = sel[np.argsort(count[sel], kind="stable")]
+            ng = max(1, min(N_GROUPS, int(round(N_GROUPS * sel.size / max(self.n, 1))), sel.size))
+            out += [i for i in np.array_split(order, ng) if i.size]
+        return out
 
     @staticmethod
     def _deposit(alpha, k0, k, g_c, dg_c, var_h, mass, rows):
@@ -402,7 +426,7 @@ class SpotModel:
         return img, np.clip(trunc, 0.0, 1.0)
 
     def _render(self, g, s_maj, s_min):
-        p, m, sig = self.sensor.pixels, NODES_PER_PX, self.sigma_px
+        p, m, sig = self.sensor.pixels, g["m"], self.sigma_px
         c = (p - 1) / 2.0
         w = g["w"]
         nk = w.shape[1]
