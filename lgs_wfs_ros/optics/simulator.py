@@ -177,6 +177,9 @@ class Simulator:
         self._random_epoch = None
         self.index = 0
         self.altitude_m, self._static = self._profile_setup()
+        for a in (self.altitude_m, self._static):          # shared by every Frame: read-only
+            if a is not None:
+                a.setflags(write=False)
 
     # -- profiles -----------------------------------------------------------------------
     def _profile_setup(self):
@@ -218,6 +221,7 @@ class Simulator:
         if self._random_epoch != epoch:
             self._random_epoch = epoch
             self._random_profile = self.model().sample(self._profile_rng, 1, self.altitude_m)[0]
+            self._random_profile.setflags(write=False)
         return self._random_profile, ("random", epoch)
 
     # -- displacements -------------------------------------------------------------------
