@@ -299,3 +299,29 @@ def test_fuzzed_bags_raise_only_clean_errors(tmp_path):
                 fn()
             except (BagError, ValueError):
                 pass
+
+
+def test_replay_skips_bad_frames_and_keeps_going(tmp_path):
+    """A frame of the wrong size or an all-zero frame does not stop a replay: the wrong-size
+    one gets no slopes (counted), the all-zero one gets NaN slopes, the good ones are measured."""
+    sensor = single()
+    rng = np.random.default_rng(2)
+    truths = rng.normal(0, 0.3, size=(6, 1, 2))
+    imgs = spots(truths[:, 0], photons=1000, sigma=SIGMA, rng=rng).astype(np.float32)
+    path = tmp_path / "bad_frames.mcap"
+    with bagdata.ContractBagWriter(path, sensor, log_ns=T0) as w:
+        for k in range(6):
+            s = T0 + DT * k
+            frame = imgs[k]
+            if k == 2:
+                frame = np.zeros((8, 8), np.float32)          # wrong size
+            if k == 4:
+                frame = np.zeros_like(imgs[k])                # no light
+            w.frame(s, frame)
+            w.truth(s, truths[k])
+    res = replay_bag(path, ["cog"], out=tmp_path / "o.mcap", quiet=True)
+    assert res["frames"] == 5 and res["skipped"] == 1
+    seg = bagdata.load_bag(tmp_path / "o.mcap").segments[0]
+    assert len(seg.slopes) == 5
+    nan_rows = ~np.isfinite(seg.slopes.data[:, 0]).all(axis=1)
+    assert nan_rows.tolist() == [False, False, False, True, False]
