@@ -41,7 +41,7 @@ class SimulationConfig:
     """What to simulate besides the sensor (all JSON-able through :meth:`to_dict`).
 
     Attributes:
-        profile: ``"centred"``/``"uncentred"`` (the paper's fixed cases, on
+        profile: ``"centred"``/``"uncentred"`` (the paper's fixed cases; "centred" has its harmonic-mean altitude at h_ref so the light's CoG is unbiased, the paper's ideal case; on
             :func:`sodium.default_altitude_grid`), ``"measured"`` (row ``measured_index``
             of :func:`sodium.load_measured`), ``"evolving"`` (the measured sequence
             interpolated in time at the frame rate, ``seconds_per_profile`` apart),
@@ -55,8 +55,9 @@ class SimulationConfig:
             expected counts (use ``dtype="float32"`` on the sensor to keep them exact).
         seed: int >= 0.
         subtract_background: subtract the expected background from the counts.
-        per_field: ``sensor.photons`` counts the photons inside the field (see
-            :mod:`.detector`); default: per subaperture, truncated light lost.
+        per_field: ``sensor.photons`` counts the photons detected inside the 16 x 16
+            field (default, docs/conventions.md section 1, the paper's "total detected
+            photons"); False: photons of the whole spot, truncated light lost.
     """
 
     profile: str = "uncentred"
@@ -72,7 +73,7 @@ class SimulationConfig:
     noise: bool = True
     seed: int = 0
     subtract_background: bool = True
-    per_field: bool = False
+    per_field: bool = True
 
     def __post_init__(self):
         if self.altitude_m is not None:
@@ -196,7 +197,7 @@ class Simulator:
             return h, prof[c.measured_index]
         h = sodium.default_altitude_grid()
         if c.profile == "centred":
-            return h, sodium.centred_profile(h, h_ref)
+            return h, sodium.centred_profile(h, h_ref, centre="harmonic")
         if c.profile == "uncentred":
             return h, sodium.uncentred_profile(h, h_ref, pixel_scale_arcsec=self.sensor.pixel_scale_arcsec)
         if c.profile == "gaussian":

@@ -24,6 +24,7 @@ from .. import bags
 from ..centroiding import ALGORITHMS, make_centroider
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
+from .spinning import spin_until
 from . import environment, parameters, qos
 
 OPTION_PARAMS = ("model", "cmf_update_period", "cmf_reference", "tcog_threshold", "options")
@@ -218,7 +219,7 @@ def main(args=None):
     code = 0
     try:
         node = CentroiderNode()
-        rclpy.spin(node)
+        spin_until(node, lambda: False)
     except (ValueError, SensorError) as exc:
         print(f"centroider_node: cannot start: {exc}", flush=True)
         code = 2

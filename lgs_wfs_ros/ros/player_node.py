@@ -19,6 +19,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
+from .spinning import spin_until
 from . import environment, parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
@@ -175,8 +176,7 @@ def main(args=None):
     code = 0
     try:
         node = PlayerNode()
-        while rclpy.ok() and not node.finished.is_set():
-            rclpy.spin_once(node, timeout_sec=0.1)
+        spin_until(node, node.finished.is_set)
     except bags.BagError as exc:
         print(f"player_node: {exc}")
         code = 2

@@ -23,6 +23,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
+from .spinning import spin_until
 from . import environment, parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
@@ -50,15 +51,17 @@ class RecorderNode(Node):
                            "(0: record until interrupted).", low=0, high=2**31 - 1)
         parameters.declare(self, "linger_s", 1.0, "After the frame budget, keep recording this "
                            "long so slopes of the last frames arrive.", low=0.0, high=60.0)
+        parameters.declare(self, "chunk_kb", 4096, "MCAP chunk size, kB: a crash or a full disk "
+                           "loses at most the open chunk.", low=16, high=1 << 20, read_only=True)
         parameters.declare(self, "compression", "zstd", "Chunk compression.",
                            choices=("zstd", "lz4", "none"), read_only=True)
         self.add_on_set_parameters_callback(self._validate)
 
-        p = parameters.values(self, ("output", "overwrite", "compression"))
+        p = parameters.values(self, ("output", "overwrite", "compression", "chunk_kb"))
         out = Path(p["output"])
         out.parent.mkdir(parents=True, exist_ok=True)
         self.path = out
-        self.writer = bags.BagWriter(out, overwrite=p["overwrite"],
+        self.writer = bags.BagWriter(out, overwrite=p["overwrite"], chunk_size=p["chunk_kb"] * 1024,
                                      compression=None if p["compression"] == "none" else p["compression"])
         self.recorded: dict[str, int] = {}
         self.frames_seen = 0
@@ -158,7 +161,9 @@ class RecorderNode(Node):
         finally:
             self.done = True
         counts = ", ".join(f"{t}: {n}" for t, n in sorted(self.recorded.items()))
-        self.get_logger().info(f"closed {self.path} ({counts})")
+        saved = getattr(self.writer, "saved_count", None)
+        self.get_logger().info(f"closed {self.path}: {saved} messages saved "
+                               f"(received and written: {counts})")
 
 
 def main(args=None):
@@ -167,8 +172,11 @@ def main(args=None):
     node = None
     try:
         node = RecorderNode()
-        while rclpy.ok() and not node.done:
-            rclpy.spin_once(node, timeout_sec=0.1)
+        spin_until(node, lambda: node.done)
+    except bags.BagError as exc:   # e.g. the output exists and overwrite is false
+        print(f"recorder_node: cannot record: {exc}", flush=True)
+        rclpy.try_shutdown()
+        return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -32,6 +32,7 @@ from .. import bags
 from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
+from .spinning import spin_until
 from . import environment, parameters, qos
 
 SENSOR_DOC = {
@@ -214,11 +215,9 @@ def main(args=None):
     code = 0
     try:
         node = SimulatorNode()
-        while rclpy.ok() and not node.finished.is_set():
-            rclpy.spin_once(node, timeout_sec=0.1)
+        spin_until(node, node.finished.is_set)
         end = time.monotonic() + 1.0   # let reliable deliveries of the last frames finish
-        while rclpy.ok() and time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.1)
+        spin_until(node, lambda: time.monotonic() > end)
     except ValueError as exc:
         print(f"simulator_node: cannot start: {exc}", flush=True)
         code = 2
