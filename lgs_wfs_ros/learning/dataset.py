@@ -80,7 +80,11 @@ class DataSpec:
             :func:`random_profiles`): "mvn" (joint normal of the fit parameters: the
             measured night's narrow spread, layer centroid 90.33 +- 0.08 km), "independent"
             (the paper's independent normal per parameter: centroid spread ~1.2 km) or
-            "mix" (half each; default).
+            "mix" (a fraction ``mix_fraction`` independent, the rest mvn). Default "mvn".
+        mix_fraction: share of "independent" draws in "mix".
+        r_power: pupil mode: a subaperture is drawn with probability proportional to
+            ``r ** -r_power`` (0: every valid subaperture equally; 1: uniform in r, the
+            inner rings as often as the outer ones).
     """
 
     sensor: Sensor
@@ -90,7 +94,9 @@ class DataSpec:
     detectors: tuple = ("polar", "cartesian")
     conditioning: str = "none"
     photons_range: tuple | None = None
-    profile_model: str = "mix"
+    profile_model: str = "mvn"
+    mix_fraction: float = 0.5
+    r_power: float = 0.0
 
     def __post_init__(self):
         if self.profile_model not in PROFILE_MODELS:
@@ -126,7 +132,8 @@ class DataSpec:
                 "sigma_px": self.sigma_px, "pupil": self.pupil,
                 "detectors": list(self.detectors), "conditioning": self.conditioning,
                 "photons_range": None if self.photons_range is None else list(self.photons_range),
-                "profile_model": self.profile_model}
+                "profile_model": self.profile_model, "mix_fraction": self.mix_fraction,
+                "r_power": self.r_power}
 
     def replace(self, **changes) -> "DataSpec":
         return replace(self, **changes)
@@ -171,7 +178,8 @@ def measured_split(n_profiles: int = 88) -> tuple[np.ndarray, np.ndarray]:
 PROFILE_MODELS = ("mvn", "independent", "mix")
 
 
-def random_profiles(rng: np.random.Generator, n: int, altitude_m, how: str = "mix") -> np.ndarray:
+def random_profiles(rng: np.random.Generator, n: int, altitude_m, how: str = "mvn",
+                    fraction: float = 0.5) -> np.ndarray:
     """``(n, K)`` random training profiles.
 
     The measured set is one night's 88 consecutive profiles whose density centroid moves
@@ -179,7 +187,7 @@ def random_profiles(rng: np.random.Generator, n: int, altitude_m, how: str = "mi
     on it alone learns a tight prior on the layer altitude and fails on any layer that
     sits elsewhere (the paper's uncentred case is 9 sigma away). The paper's own draw
     (independent normals per Gaussian parameter) spreads the centroid over ~1.2 km.
-    "mix" draws each profile from one or the other with equal odds.
+    "mix" draws each profile from "independent" with probability ``fraction``, else "mvn".
     """
     m = _model()
     if how == "mvn":
@@ -188,7 +196,7 @@ def random_profiles(rng: np.random.Generator, n: int, altitude_m, how: str = "mi
         return m.with_method("independent").sample(rng, n, altitude_m)
     if how != "mix":
         raise ValueError(f"unknown profile model {how!r}")
-    pick = rng.random(n) < 0.5
+    pick = rng.random(n) < fraction
     out = m.sample(rng, n, altitude_m)
     k = int(pick.sum())
     if k:
@@ -227,7 +235,11 @@ def subaperture_geometry(spec: DataSpec, rng: np.random.Generator, n: int):
         r = np.full(n, lay.r_m[0])
         e = lay.e[0] if spec.sensor.detector == "cartesian" else np.array([1.0, 0.0])
         return r, np.tile(e, (n, 1))
-    idx = rng.integers(0, lay.n_valid, size=n)
+    if spec.r_power:
+        w = np.asarray(lay.r_m) ** -spec.r_power
+        idx = rng.choice(lay.n_valid, size=n, p=w / w.sum())
+    else:
+        idx = rng.integers(0, lay.n_valid, size=n)
     polar = rng.integers(0, len(spec.detectors), size=n)
     polar = np.array([d == "polar" for d in spec.detectors])[polar]
     r = np.asarray(lay.r_m)[idx]
@@ -271,7 +283,7 @@ def sample(spec: DataSpec, rng: np.random.Generator, n: int, *, density=None, al
     else:
         t = np.asarray(shift_px, dtype=float).reshape(n, 2)
         smax = float(np.abs(t).max())
-    rho = random_profiles(rng, n, h, spec.profile_model) if density is None \
+    rho = random_profiles(rng, n, h, spec.profile_model, spec.mix_fraction) if density is None \
         else np.asarray(density, dtype=float)
     render = spec.sensor.replace(detector="cartesian")
     spots = SpotModel(render, r, e, h, rho, max_shift_px=smax)

@@ -45,7 +45,9 @@ def recipe_sensor(rec: recipes.Recipe) -> Sensor:
 def recipe_spec(rec: recipes.Recipe) -> dataset.DataSpec:
     """The :class:`.dataset.DataSpec` of a recipe."""
     return dataset.DataSpec(recipe_sensor(rec), photons=rec.photons, sigma_px=rec.sigma_px,
-                            pupil=rec.pupil, conditioning=rec.conditioning)
+                            pupil=rec.pupil, conditioning=rec.conditioning,
+                            profile_model=rec.profile_model, mix_fraction=rec.mix_fraction,
+                            r_power=rec.r_power)
 
 
 def input_gain(rec: recipes.Recipe) -> float:
@@ -67,7 +69,8 @@ def _mean_error(net, xt, yt) -> float:
 
 
 def fit_adam(net, x, y, xv, yv, *, epochs: int, batch: int, lr: float, seed: int,
-             time_budget_s: float | None = None, progress: bool = True) -> list[dict]:
+             time_budget_s: float | None = None, progress: bool = True,
+             weight_decay: float = 0.0) -> list[dict]:
     """Adam, MSE loss, cosine-decayed ``lr``; keeps the best monitor weights.
 
     Args: torch float32 tensors ``x (N, in)``, ``y (N, 2)``, monitor ``xv``, ``yv``.
@@ -77,7 +80,8 @@ def fit_adam(net, x, y, xv, yv, *, epochs: int, batch: int, lr: float, seed: int
     from tqdm.auto import tqdm
 
     g = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay) if weight_decay \
+        else torch.optim.Adam(net.parameters(), lr=lr)
     steps = epochs * math.ceil(x.shape[0] / batch)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda k: 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(k, steps) / steps)))
@@ -200,7 +204,9 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     torch.set_num_threads(1)
 
     data = training_data(rec, samples, seed, progress)
-    mon = dataset.generate(recipe_spec(rec), min(20_000, max(2000, samples // 10)), batch=8192,
+    mon_spec = recipe_spec(rec) if rec.monitor_photons is None else \
+        recipe_spec(rec).replace(photons=rec.monitor_photons)
+    mon = dataset.generate(mon_spec, min(20_000, max(2000, samples // 10)), batch=8192,
                            seed=MONITOR_SEED + seed, progress=False, input_gain=input_gain(rec))
     x = torch.from_numpy(_features(data, rec)); y = torch.from_numpy(data["y"])
     xv = torch.from_numpy(_features(mon, rec)); yv = torch.from_numpy(mon["y"])
@@ -208,7 +214,8 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     t_fit = time.perf_counter()
     if opt == "adam":
         hist = fit_adam(net, x, y, xv, yv, epochs=epochs, batch=rec.batch, lr=rec.lr, seed=seed,
-                        time_budget_s=time_budget_s, progress=progress)
+                        time_budget_s=time_budget_s, progress=progress,
+                        weight_decay=rec.weight_decay)
     else:
         hist = fit_lm(net, x, y, xv, yv, samples=min(rec.lm_samples, samples),
                       iterations=3 if quick else rec.lm_iterations,

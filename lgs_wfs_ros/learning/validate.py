@@ -191,9 +191,9 @@ def pixel_errors(path, s: dataset.Samples) -> float:
     return float(np.linalg.norm(out - truth, axis=1).mean())
 
 
-RINGS = {("polar", "outer"): ("ann_1k", 14.75), ("polar", "mid"): ("ref_polar_mid", 8.75),
+RINGS = {("polar", "outer"): ("ref_polar_outer", 14.75), ("polar", "mid"): ("ref_polar_mid", 8.75),
          ("polar", "inner"): ("ref_polar_inner", 2.25),
-         ("cartesian", "outer"): ("ann_diag", 14.75),
+         ("cartesian", "outer"): ("ref_cartesian_outer", 14.75),
          ("cartesian", "mid"): ("ref_cartesian_mid", 8.75),
          ("cartesian", "inner"): ("ref_cartesian_inner", 2.25)}
 
@@ -241,3 +241,64 @@ def readme_table(model_dir="models") -> str:
                              f"{c['ann']['mean_err_mas']:.1f} | {c['cog']['mean_err_mas']:.1f} | "
                              f"{c['cmf']['mean_err_mas']:.1f} | {ps} |")
     return "\n".join(lines) + "\n\n" + "\n".join(val_lines) + "\n"
+
+
+def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2) -> dict:
+    """ann_pupil's mean error (px) over random valid subapertures of the default pupil,
+    per detector, 1000 photons, fresh random (mvn) profiles, turbulence-like positions."""
+    out = {}
+    for det in ("polar", "cartesian"):
+        spec = dataset.DataSpec(Sensor(), photons=1000.0, pupil=True, detectors=(det,),
+                                conditioning="e_r", sigma_px=dataset.turbulence_sigma_px(Sensor()))
+        s = dataset.sample(spec, np.random.default_rng([seed, len(det)]), n)
+        out[det] = pixel_errors(pupil_path, s)
+    return out
+
+
+def finalize(model_dir="models", ref_dir="/tmp/runs/refs", quick: bool = False) -> dict:
+    """Validate every shipped model, record the numbers in its metadata, write the README."""
+    from . import export, recipes
+    results = {}
+    for name in recipes.SHIPPED:
+        path = Path(model_dir) / f"{name}.onnx"
+        if not path.is_file():
+            continue
+        tr = export.read_metadata(path)["lgs_wfs.training"]
+        tr["validation"] = validate_model(path, recipes.get(name), quick=quick)
+        if name == "ann_pupil" and Path(ref_dir).is_dir():
+            tr["pupil_criterion"] = pupil_criterion(path, model_dir, ref_dir, n=600 if quick else 4000)
+            tr["pupil_all_subapertures_err_px"] = pupil_all_subapertures(path, 2000 if quick else 20_000)
+        export.update_metadata(path, {"lgs_wfs.training": tr})
+        results[name] = tr
+    return results
+
+
+def pupil_table(model_dir="models") -> str:
+    """Markdown table of ann_pupil's ring-by-ring criterion (from its metadata)."""
+    from . import export
+    path = Path(model_dir) / "ann_pupil.onnx"
+    if not path.is_file():
+        return ""
+    tr = export.read_metadata(path).get("lgs_wfs.training", {})
+    rows = tr.get("pupil_criterion") or []
+    lines = ["| detector | ring | r (m) | ann_pupil (px) | dedicated 256-16-2 (px) | ratio (<= 1.1) |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['detector']} | {r['ring']} | {r['radius_m']:g} | {r['pupil_err_px']:.4f} | "
+                     f"{r['reference_err_px']:.4f} | {r['ratio']:.3f} |")
+    allv = tr.get("pupil_all_subapertures_err_px")
+    if allv:
+        lines.append("")
+        lines.append("Mean error over random valid subapertures of the whole pupil, 1000 photons: "
+                     + ", ".join(f"{k} {v:.4f} px ({v * 500:.1f} mas)" for k, v in allv.items()) + ".")
+    return "\n".join(lines) + "\n"
+
+
+def write_readme(model_dir="models", header: str = "", footer: str = "") -> Path:
+    """Write ``model_dir/README.md`` from the models' metadata (plus fixed text)."""
+    text = (header + "\n## Shipped models\n\n" + readme_table(model_dir)
+            + "\n## Full-pupil criterion (ann_pupil vs a network trained for that subaperture)\n\n"
+            + pupil_table(model_dir) + "\n" + footer)
+    p = Path(model_dir) / "README.md"
+    p.write_text(text)
+    return p
