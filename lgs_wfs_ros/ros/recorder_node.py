@@ -172,6 +172,9 @@ def main(args=None):
     node = None
     try:
         node = RecorderNode()
+        # Added once: rclpy.spin_once would add and remove the node on every call, which
+        # wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
+        rclpy.get_global_executor().add_node(node)
         spin_until(node, lambda: node.done)
     except bags.BagError as exc:   # e.g. the output exists and overwrite is false
         print(f"recorder_node: cannot record: {exc}", flush=True)
