@@ -79,7 +79,8 @@ class Recipe:
     def line(self, samples: int | None = None) -> str:
         """The one-line recipe printed by ``lgs-wfs train``."""
         ph = "noise-free" if self.photons is None else f"{self.photons:g} photons"
-        where = "random valid subapertures of the default pupil, both detectors" if self.pupil \
+        where = ("random valid subapertures of the default pupil (probability ~ r^-"
+                 f"{self.r_power:g}), both detectors") if self.pupil \
             else f"{self.detector} subaperture at r = {self.radius_m or 14.75:g} m"
         opt = (f"Adam{'W wd ' + format(self.weight_decay, 'g') if self.weight_decay else ''} "
                f"lr {self.lr:g} cosine, batch {self.batch}, {self.epochs} epochs"
@@ -106,7 +107,7 @@ RECIPES = {
     "ann_1k": Recipe("ann_1k", "polar", photons=1000.0, seed=11, **PAPER_PROFILES,
                      note="paper ANN 1k: polar, outermost subaperture, 1000 photons"),
     "ann_noiseless": Recipe("ann_noiseless", "polar", photons=None, seed=12, **PAPER_PROFILES,
-                            weight_decay=1e-3, monitor_photons=1000.0,
+                            weight_decay=1e-2, monitor_photons=1000.0,
                             note="paper ANN Noiseless: polar, outermost, no noise"),
     "ann_diag": Recipe("ann_diag", "cartesian", photons=1000.0, seed=13, **PAPER_PROFILES,
                        note="paper ANN Diag: cartesian, outermost diagonal, 1000 photons"),
