@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 SIGMA_TRAIN_PX = 0.6
 PAPER_SIZES = (256, 16, 2)
-PUPIL_SIZES = (259, 64, 64, 2)
+PUPIL_SIZES = (259, 80, 64, 2)
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class Recipe:
         lm_samples, lm_iterations: LM settings (fixed batch, Marquardt damping).
         profile_model, mix_fraction: random-profile draw (:func:`.dataset.random_profiles`).
         r_power: pupil models: subaperture draw probability proportional to r^-r_power.
+        detectors: pupil models: detector of each sample, drawn uniformly from this tuple
+            (repeat an entry to weight it).
         weight_decay: AdamW decoupled weight decay (0: plain Adam).
         monitor_photons: photons of the held-out monitor set that selects the kept weights
             (default: the training photons).
@@ -70,6 +72,7 @@ class Recipe:
     profile_model: str = "mvn"
     mix_fraction: float = 0.5
     r_power: float = 0.0
+    detectors: tuple = ("polar", "cartesian")
     weight_decay: float = 0.0
     monitor_photons: float | None = None
     seed: int = 1
@@ -80,7 +83,7 @@ class Recipe:
         """The one-line recipe printed by ``lgs-wfs train``."""
         ph = "noise-free" if self.photons is None else f"{self.photons:g} photons"
         where = ("random valid subapertures of the default pupil (probability ~ r^-"
-                 f"{self.r_power:g}), both detectors") if self.pupil \
+                 f"{self.r_power:g}), detectors {'/'.join(self.detectors)}") if self.pupil \
             else f"{self.detector} subaperture at r = {self.radius_m or 14.75:g} m"
         opt = (f"Adam{'W wd ' + format(self.weight_decay, 'g') if self.weight_decay else ''} "
                f"lr {self.lr:g} cosine, batch {self.batch}, {self.epochs} epochs"
@@ -112,7 +115,8 @@ RECIPES = {
     "ann_diag": Recipe("ann_diag", "cartesian", photons=1000.0, seed=13, **PAPER_PROFILES,
                        note="paper ANN Diag: cartesian, outermost diagonal, 1000 photons"),
     "ann_pupil": Recipe("ann_pupil", "any", pupil=True, sizes=PUPIL_SIZES, conditioning="e_r",
-                        samples=700_000, epochs=36, batch=512, lr=2e-3, seed=14, r_power=0.5,
+                        samples=900_000, epochs=48, batch=512, lr=2e-3, seed=14, r_power=1.0,
+                        detectors=("polar", "cartesian", "cartesian"),
                         note="one network for every valid subaperture, polar and cartesian, "
                              "conditioned on (e, r/15); 1000 photons"),
 }

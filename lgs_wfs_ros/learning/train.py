@@ -47,7 +47,7 @@ def recipe_spec(rec: recipes.Recipe) -> dataset.DataSpec:
     return dataset.DataSpec(recipe_sensor(rec), photons=rec.photons, sigma_px=rec.sigma_px,
                             pupil=rec.pupil, conditioning=rec.conditioning,
                             profile_model=rec.profile_model, mix_fraction=rec.mix_fraction,
-                            r_power=rec.r_power)
+                            r_power=rec.r_power, detectors=rec.detectors)
 
 
 def input_gain(rec: recipes.Recipe) -> float:

@@ -255,11 +255,12 @@ def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2
     return out
 
 
-def finalize(model_dir="models", ref_dir="/tmp/runs/refs", quick: bool = False) -> dict:
-    """Validate every shipped model, record the numbers in its metadata, write the README."""
+def finalize(model_dir="models", ref_dir="/tmp/runs/refs", quick: bool = False,
+             names=None) -> dict:
+    """Validate shipped models (default all), record the numbers in their metadata."""
     from . import export, recipes
     results = {}
-    for name in recipes.SHIPPED:
+    for name in names or recipes.SHIPPED:
         path = Path(model_dir) / f"{name}.onnx"
         if not path.is_file():
             continue
