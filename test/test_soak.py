@@ -18,8 +18,13 @@ What the QoS promises (lgs_wfs_ros/ros/qos.py, docs/transport.md) and this test 
    subscriber has not taken), and the accounting is exact:
    sent = lost before the first received + received + gaps counted + lost after the last;
    no frame is rejected, the last frame sent arrives (reliable: nothing newer overwrites it);
-4. memory is flat: after a 20 s warm-up (DDS history pools, the player's bag cache) no node
-   process's RSS grows by more than 24 MB (13 frames) up to the end of the run.
+4. memory is flat: after a 30 s warm-up (the player's bag cache, the DDS history pools) the
+   median RSS of each node process over the last 10 s exceeds that of the 10 s after the
+   warm-up by less than 64 MB. Fast DDS grows a history's payload pool on demand, up to its
+   depth (100 frames, 184 MB), when a backlog deeper than any before builds up: one such
+   step of 42 MB (23 frames) was seen in the player at t = 51 s on a loaded machine. The
+   bound fails a leak of more than ~3 kB per frame (64 MB over the ~21,000 frames after the
+   warm-up), not a pool step of a third of the history.
 
 At 700 Hz the centroider does not keep up with full-pupil frames on 2 cores (see
 docs/transport.md); the soak still runs at 700 Hz and checks that whatever is lost is counted.
@@ -43,8 +48,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 RATE_HZ = 700.0
 SOAK_S = 60.0
-WARMUP_S = 20.0
-RSS_GROWTH_MB = 24.0
+WARMUP_S = 30.0
+RSS_GROWTH_MB = 64.0
 START_NS = 1_700_000_000_000_000_000
 PLAYER, CENTROIDER, RECORDER = "wfs/player_node", "cog/centroider_node", "wfs/recorder_node"
 
@@ -111,11 +116,12 @@ def run_soak(tmp_path: Path):
         sampler = RssSampler({k: p.pid for k, p in g.procs.items()})
         sampler.start()
         time.sleep(4.0 + SOAK_S)                         # the player's start delay, the soak
+        sampler.halt.set()                               # RSS of running nodes only
+        sampler.join()
         for key in (PLAYER, CENTROIDER):                 # producers first, each drained
             g.procs[key].send_signal(signal.SIGINT)
             assert g.wait(key, 20) is not None, g.log(key)[-2000:]
             time.sleep(2.0)
-        sampler.halt.set()
         codes = g.stop(timeout=20)
         logs = {k: g.log(k) for k in (PLAYER, CENTROIDER, RECORDER)}
     assert codes[RECORDER] == 0, logs[RECORDER][-2000:]
@@ -130,14 +136,14 @@ def test_soak_700hz_full_pupil_counts_every_frame_and_memory_is_flat(tmp_path):
     slope_stamps, _ = reader.images("/cog/slopes")
     truth_stamps, _ = reader.images("/wfs/true_slopes")
     sent = player["frame"]
-    sent_idx = np.arange(sent)
     idx = (slope_stamps - START_NS) // period
     t_idx = (truth_stamps - START_NS) // period
 
     report = {"sent": sent, "player rate Hz": round(sent / SOAK_S), **cen, "slopes recorded": len(slope_stamps),
               "truths recorded": len(truth_stamps), "frames recorded": 0,
-              "rss MB (start, warm, end)": {k: [round(s[0][1]), round(min(
-                  (m for t, m in s if t >= WARMUP_S), default=np.nan)), round(s[-1][1])]
+              "rss MB (start, min after warm-up, end, max)": {k: [round(s[0][1]), round(min(
+                  (m for t, m in s if t >= WARMUP_S), default=np.nan)), round(s[-1][1]),
+                  round(max(m for _t, m in s))]
                   for k, s in rss.items() if s}}
     print("soak:", json.dumps(report))
 
@@ -146,8 +152,9 @@ def test_soak_700hz_full_pupil_counts_every_frame_and_memory_is_flat(tmp_path):
     assert np.all((slope_stamps - START_NS) % period == 0)
     assert len(np.unique(idx)) == len(idx) == cen["processed"]
     assert idx.min() >= 0 and idx.max() < sent
-    # 2. every sent frame's truth is recorded
-    np.testing.assert_array_equal(np.sort(t_idx), sent_idx)
+    # 2. every sent truth is recorded (the player may stop between a frame and its truth)
+    assert player["true_slopes"] in (sent, sent - 1)
+    np.testing.assert_array_equal(np.sort(t_idx), np.arange(player["true_slopes"]))
     # 3. exact accounting of frames, losses only before the centroider
     assert cen["rejected"] == 0 and cen["received"] == cen["processed"]
     head, tail = int(idx.min()), int(sent - 1 - idx.max())
@@ -159,5 +166,5 @@ def test_soak_700hz_full_pupil_counts_every_frame_and_memory_is_flat(tmp_path):
         mb = np.array([s[1] for s in samples])
         after = mb[t >= WARMUP_S]
         assert len(after) >= 0.5 * (SOAK_S - WARMUP_S), f"{key}: too few RSS samples"
-        growth = after.max() - after[: 5].min()
+        growth = np.median(after[-10:]) - np.median(after[:10])
         assert growth < RSS_GROWTH_MB, f"{key}: RSS grew {growth:.1f} MB after warm-up: {after}"
