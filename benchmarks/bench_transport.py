@@ -126,7 +126,7 @@ def specs(bag: Path, out: Path, alg: str, params: dict, rate: str, profile_out: 
         "output": str(out), "overwrite": True, "discover": False, "frame_every": 0,
         "compression": "none",
         "topics": ["/wfs/true_slopes", "/wfs/sensor", f"/{alg}/slopes", f"/{alg}/centroider"]})
-    cparams = {"algorithm": alg, "log_period_s": 1000.0, **params}
+    cparams = {"algorithm": alg, "log_period_s": 0.5, **params}
     remaps = {"frame": "/wfs/frame", "sensor": "/wfs/sensor"}
     cen = (ProfiledSpec("centroider_node", alg, cparams, remaps, profile_out=profile_out)
            if profile_out and profile_node == "centroider_node"
@@ -145,6 +145,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def wait_started(g: Graph, cen_key: str, timeout: float = 90.0) -> None:
+    """Until the centroider logs frames received (its counters, every 0.5 s), then 1 s more."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if re.search(r"frames received [1-9]", g.log(cen_key)):
+            time.sleep(1.0)
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"no frame reached the centroider in {timeout:.0f} s:\n"
+                       + g.log(cen_key)[-2000:] + g.log(PLAYER)[-2000:])
+
+
 def final_counts(log: str) -> dict:
     m = re.findall(r"final counts (\{.*\})", log)
     return json.loads(m[-1]) if m else {}
@@ -156,7 +168,7 @@ def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, s
     out = bag.parent / f"out_{alg}_{time.monotonic_ns()}.mcap"
     cen_key = f"{alg}/centroider_node"
     with Graph(specs(bag, out, alg, params, rate, profile_out, profile_node), log_dir=bag.parent / "logs") as g:
-        time.sleep(3.0 + 2.0)                    # start delay, discovery
+        wait_started(g, cen_key)                 # start delay, discovery, first frames
         pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
         cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
         t0 = time.monotonic()
