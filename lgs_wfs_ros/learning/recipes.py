@@ -115,8 +115,7 @@ RECIPES = {
     "ann_diag": Recipe("ann_diag", "cartesian", photons=1000.0, seed=13, **PAPER_PROFILES,
                        note="paper ANN Diag: cartesian, outermost diagonal, 1000 photons"),
     "ann_pupil": Recipe("ann_pupil", "any", pupil=True, sizes=PUPIL_SIZES, conditioning="e_r",
-                        samples=900_000, epochs=48, batch=512, lr=2e-3, seed=14, r_power=1.0,
-                        detectors=("polar", "cartesian", "cartesian"),
+                        samples=700_000, epochs=36, batch=512, lr=2e-3, seed=14, r_power=1.0,
                         note="one network for every valid subaperture, polar and cartesian, "
                              "conditioned on (e, r/15); 1000 photons"),
 }
