@@ -105,9 +105,6 @@ def test_ann_pupil_full_pupil_beats_cog(det):
     assert err < 0.85 * cog
 
 
-@pytest.mark.xfail(strict=True, reason="centroiding/ann.py feeds e in detector axes; ann_pupil "
-                   "(lgs_wfs.conditioning_frame = 'pixel') needs the block's pixel axes "
-                   "(Centroider.e_pixel) on a polar detector; remove this mark once fixed")
 @pytest.mark.skipif(not (MODELS / "ann_pupil.onnx").is_file(), reason="no ann_pupil")
 def test_ann_centroider_with_ann_pupil_on_full_polar_pupil():
     s, lay, smp, truth = _full_pupil_samples("polar")

@@ -12,6 +12,8 @@ is accepted too):
 ``lgs_wfs.conditioning``    "none" | "e" (second input ``(batch, 2)`` = e in detector axes) |
                             "e_r" (``(batch, 3)`` = (ex, ey, r_m / 15)) (default "none")
 ``lgs_wfs.conditioning_input``  name of that second input (default "e")
+``lgs_wfs.conditioning_frame``  "detector" (default: e in detector axes) | "pixel" (e in the
+                                block's pixel axes: (1, 0) on a polar detector)
 ``lgs_wfs.input_name``      name of the pixel input (default: the first input)
 ``lgs_wfs.training``        free-form JSON, reported by ``describe()``
 ==========================  =================================================================
@@ -78,12 +80,14 @@ def read_metadata(meta_map: dict) -> dict:
             except (json.JSONDecodeError, TypeError):
                 raw[k[len(META):]] = v
     md = {"detector": "any", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
-          "conditioning": "none", "conditioning_input": "e", "input_name": None, "training": None}
+          "conditioning": "none", "conditioning_input": "e", "conditioning_frame": "detector",
+          "input_name": None, "training": None}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
     checks = [("detector", ("polar", "cartesian", "any")), ("input_norm", ("sum", "none")),
-              ("output_frame", ("local", "detector")), ("conditioning", ("none", "e", "e_r"))]
+              ("output_frame", ("local", "detector")), ("conditioning", ("none", "e", "e_r")),
+              ("conditioning_frame", ("detector", "pixel"))]
     for key, allowed in checks:
         if md[key] not in allowed:
             raise ValueError(f"ann: metadata lgs_wfs.{key} must be one of {list(allowed)}, got {md[key]!r}")
@@ -147,6 +151,9 @@ class ANN(Centroider):
                 raise ValueError(f"ann: conditioning {md['conditioning']!r} needs an input named "
                                  f"{cname!r}; the model has {list(inputs)}")
             e = np.asarray(self.layout.e, dtype=np.float32)
+            if md.get("conditioning_frame", "detector") == "pixel" and self.sensor.detector == "polar":
+                # e in the block's own pixel axes: along local x on a polar detector
+                e = np.tile(np.array([1.0, 0.0], dtype=np.float32), (e.shape[0], 1))
             if md["conditioning"] == "e_r":
                 e = np.concatenate([e, (np.asarray(self.layout.r_m) / 15.0)[:, None]], axis=1)
             _check_width(inputs[cname], e.shape[1], "conditioning input", self.n)
