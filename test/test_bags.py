@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import zlib
 
 import numpy as np
 import pytest
@@ -626,7 +625,7 @@ def _consistent(path):
     n = len(st)
     assert counts[FRAME][1] == n and meta["message_count"] == n
     np.testing.assert_array_equal(st, np.arange(n))
-    np.testing.assert_array_equal(arr[:, 0, 0], np.arange(n).astype(np.uint16))
+    np.testing.assert_array_equal(arr[:, 0, 0], (np.arange(n) % 65535).astype(np.uint16))  # writers store i % 65535
     from mcap.reader import make_reader
     with open(path, "rb") as f:
         assert sum(1 for _ in make_reader(f).iter_messages()) == n

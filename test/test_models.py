@@ -1,6 +1,5 @@
 """Shipped models: load, metadata contract, recorded check error reproduced (onnxruntime only)."""
 
-import json
 from pathlib import Path
 
 import numpy as np

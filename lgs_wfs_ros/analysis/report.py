@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 from scipy.special import ellipe
 
-from ..bags import join_by_stamp
 from ..optics import geometry
 from . import metrics
 from .bagdata import BagData, joined, load_bag
@@ -91,7 +90,6 @@ def simulator_model(data: BagData):
     info = data.sensor_info or {}
     if data.sensor is None or data.truth is None or not len(data.truth) or "simulation" not in info:
         return None
-    from ..optics.detector import expose  # noqa: F401  (the simulator's photon convention)
     from ..optics.simulator import SimulationConfig, Simulator
     try:
         cfg = SimulationConfig.from_dict(info["simulation"])

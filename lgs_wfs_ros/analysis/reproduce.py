@@ -23,7 +23,6 @@ time order, as it would live (the CMF keeps its 5-frame history).
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

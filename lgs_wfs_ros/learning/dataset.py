@@ -22,7 +22,7 @@ the true displacement in pixel axes, pixels, ``(n, 2)``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np

@@ -13,8 +13,7 @@ while still concentrating samples where turbulence puts them.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 SIGMA_TRAIN_PX = 0.6
 PAPER_SIZES = (256, 16, 2)

@@ -13,9 +13,6 @@ import json
 import threading
 import time
 
-import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -24,9 +21,8 @@ from .. import bags
 from ..centroiding import ALGORITHMS, make_centroider
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
-from .recorder_node import DRAIN, take_queued
-from .spinning import spin_until
-from . import environment, parameters, qos
+from .spinning import DRAIN, run_node, take_queued
+from . import parameters, qos
 
 OPTION_PARAMS = ("model", "cmf_update_period", "cmf_reference", "tcog_threshold", "options")
 
@@ -222,29 +218,13 @@ class CentroiderNode(Node):
             f"rejected {c.rejected}" + (f" (last: {c.last_reason})" if c.rejected else ""))
 
 
+def _final_counts(node) -> None:
+    print(f"centroider_node: final counts {json.dumps(node.counters.as_dict())}", flush=True)
+
+
 def main(args=None):
-    environment.configure()
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = CentroiderNode()
-        # Added once: rclpy.spin_once would add and remove the node on every call, which
-        # wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
-        rclpy.get_global_executor().add_node(node)
-        spin_until(node, lambda: False)
-    except (ValueError, SensorError) as exc:
-        print(f"centroider_node: cannot start: {exc}", flush=True)
-        code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            c = node.counters
-            print(f"centroider_node: final counts {json.dumps(c.as_dict())}", flush=True)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("centroider_node", CentroiderNode, refused=(ValueError, SensorError),
+                    finish=_final_counts, args=args)
 
 
 if __name__ == "__main__":

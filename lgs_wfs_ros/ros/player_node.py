@@ -14,15 +14,13 @@ import struct
 import threading
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
-from .spinning import spin_until
-from . import environment, parameters, qos
+from .spinning import run_node
+from . import parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
 REPLAYED = ("frame", "true_slopes", "sensor")
@@ -213,29 +211,14 @@ class PlayerNode(Node):
         self._thread.join(timeout=5)
 
 
+def _finish(node) -> None:
+    node.stop()
+    print(f"player_node: final counts {json.dumps(node.published)}", flush=True)
+
+
 def main(args=None):
-    environment.configure()
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = PlayerNode()
-        # Added once: rclpy.spin_once would add and remove the node on every call, which
-        # wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
-        rclpy.get_global_executor().add_node(node)
-        spin_until(node, node.finished.is_set)
-    except bags.BagError as exc:
-        print(f"player_node: {exc}")
-        code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.stop()
-            print(f"player_node: final counts {json.dumps(node.published)}", flush=True)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("player_node", PlayerNode, done=lambda n: n.finished.is_set(),
+                    refused=(bags.BagError, ValueError), finish=_finish, args=args)
 
 
 if __name__ == "__main__":

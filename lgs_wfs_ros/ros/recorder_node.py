@@ -16,35 +16,18 @@ import threading
 import time
 from pathlib import Path
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
-from .spinning import spin_until
-from . import environment, parameters, qos
+from .spinning import DRAIN, run_node, take_queued
+from . import parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
 DEFAULT_TOPICS = ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor"]
 
 
-DRAIN = 16   # messages taken per executor callback at most (other callbacks wait that long)
-
-
-def take_queued(sub, msg_type, limit: int):
-    """Yield up to ``limit`` (message, info) already queued on a raw subscription, taken
-    without the executor; stops at the first empty take or if the subscription is gone."""
-    for _ in range(limit):
-        try:
-            with sub.handle:
-                taken = sub.handle.take_message(msg_type, True)
-        except Exception:   # destroyed (InvalidHandle) or the context is shutting down
-            return
-        if taken is None:
-            return
-        yield taken
 
 
 def default_output() -> str:
@@ -186,28 +169,15 @@ class RecorderNode(Node):
                                f"(received and written: {counts})")
 
 
+def _finish(node) -> int:
+    node.close()
+    return 1 if node.failed else 0
+
+
 def main(args=None):
-    environment.configure()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = RecorderNode()
-        # Added once: rclpy.spin_once would add and remove the node on every call, which
-        # wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
-        rclpy.get_global_executor().add_node(node)
-        spin_until(node, lambda: node.done)
-    except bags.BagError as exc:   # e.g. the output exists and overwrite is false
-        print(f"recorder_node: cannot record: {exc}", flush=True)
-        rclpy.try_shutdown()
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 1 if node is not None and node.failed else 0
+    # BagError: e.g. the output exists and overwrite is false
+    return run_node("recorder_node", RecorderNode, done=lambda n: n.done,
+                    refused=(bags.BagError, ValueError), finish=_finish, args=args)
 
 
 if __name__ == "__main__":

@@ -18,12 +18,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import threading
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -32,8 +29,8 @@ from .. import bags
 from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
-from .spinning import spin_until
-from . import environment, parameters, qos
+from .spinning import run_node
+from . import parameters, qos
 
 SENSOR_DOC = {
     "photons": "Expected detected photons per subaperture per frame.",
@@ -208,27 +205,19 @@ class SimulatorNode(Node):
         self._thread.join(timeout=10)
 
 
+def _published(node) -> bool:
+    """Done once the frame budget is out and one more second has passed, so that reliable
+    deliveries of the last frames finish."""
+    if not node.finished.is_set():
+        return False
+    if getattr(node, "_linger_until", None) is None:
+        node._linger_until = time.monotonic() + 1.0
+    return time.monotonic() > node._linger_until
+
+
 def main(args=None):
-    environment.configure()
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = SimulatorNode()
-        spin_until(node, node.finished.is_set)
-        end = time.monotonic() + 1.0   # let reliable deliveries of the last frames finish
-        spin_until(node, lambda: time.monotonic() > end)
-    except ValueError as exc:
-        print(f"simulator_node: cannot start: {exc}", flush=True)
-        code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("simulator_node", SimulatorNode, done=_published,
+                    finish=lambda node: node.stop(), args=args)
 
 
 if __name__ == "__main__":
