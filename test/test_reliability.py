@@ -35,6 +35,7 @@ def feed(rig, proc, stop_after_s, frame):
     """Publish frames until the recorder has subscribed and then for ``stop_after_s``."""
     assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0 or proc.poll() is not None,
                     timeout=30)
+    time.sleep(0.5)   # the writer sees the match before the reader does: let both settle
     sent, t_end, stamp = 0, time.monotonic() + stop_after_s, 1
     while time.monotonic() < t_end:
         rig.send(frame, stamp)
