@@ -59,6 +59,9 @@ def _decompress(kind, data, size):
     return out
 
 
+SCAN_SUMMARY_BYTES = 256 * 2**20   # summary() reads bags up to this size whole: exact per-topic rates
+
+
 class BagReader:
     """Read an MCAP bag. path: the .mcap file; strict: see module doc.
 
@@ -354,9 +357,11 @@ class BagReader:
     def summary(self):
         """dict: path, size_bytes, complete, types, profile, library, message_count, start_ns, end_ns,
         duration_s, topics {topic: {type, count, rate_hz}}, problems. rate_hz is count - 1 over
-        the topic's first-to-last log time when scanned, else over the bag's whole span (from
-        the summary, which has no per-topic times)."""
-        if self._summary is not None and self._summary["stats"] is not None:
+        the topic's first-to-last log time when scanned (every bag up to SCAN_SUMMARY_BYTES, and
+        every bag without a summary), else over the bag's whole span (the MCAP summary has no
+        per-topic times, and a start delay before the first frame then lowers the rate)."""
+        if self._summary is not None and self._summary["stats"] is not None \
+                and self.size > SCAN_SUMMARY_BYTES:
             st = self._summary["stats"]
             start, end = st["start"], st["end"]
             span = (end - start) / 1e9
