@@ -161,3 +161,27 @@ def test_out_of_range_and_wrong_type_parameters_are_refused(ros):
     assert not results.successful and "dither" in results.reason
     after = {n: node.get_parameter(n).value for n in before}
     assert after == before and node.centroider.name == "cog"
+
+
+def test_an_algorithm_fault_costs_one_frame_not_the_node(ros):
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+
+    node = ros.add(CentroiderNode(context=ros.context))
+    rig = Rig(ros)
+    assert wait_for(lambda: node.sensor == SMALL, timeout=10)
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0, timeout=10)
+    real = node.centroider.centroid
+    calls = []
+
+    def flaky(frame):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("simulated onnxruntime failure")
+        return real(frame)
+
+    node.centroider.centroid = flaky
+    rig.send(small_frame(SMALL, 5), 10)
+    rig.send(small_frame(SMALL, 6), 20)
+    assert wait_for(lambda: 20 in rig.slopes, timeout=10)
+    assert 10 not in rig.slopes
+    assert node.counters.rejected == 1 and "simulated" in node.counters.last_reason

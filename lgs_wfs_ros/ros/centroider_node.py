@@ -206,7 +206,11 @@ class CentroiderNode(Node):
                 self._reject("no centroider yet: the algorithm cannot run on the current sensor")
                 return
             self._last_stamp = stamp_ns
-            slopes = self.centroider.centroid(image)
+            try:
+                slopes = self.centroider.centroid(image)
+            except Exception as exc:   # an algorithm fault costs this frame, not the node
+                self._reject(f"{self.centroider.name} failed on this frame: {exc!r}")
+                return
             grid = geometry.slopes_to_grid(slopes, self.layout)
         self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
         self.counters.processed += 1
