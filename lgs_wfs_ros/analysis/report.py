@@ -246,6 +246,17 @@ def format_report(res: dict) -> str:
     return "\n".join(lines)
 
 
+def _save(fig, ax, path: Path) -> str:
+    """Legend, grid, layout, write the PNG, close the figure; the path as text."""
+    import matplotlib.pyplot as plt
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)
+
+
 def write_plots(res: dict, out_dir: Path) -> list[str]:
     """PNG plots of the error time series and (full pupil) the error by radius."""
     import matplotlib
@@ -263,13 +274,7 @@ def write_plots(res: dict, out_dir: Path) -> list[str]:
         ax.axhline(crb["mean_euclid"], color="k", ls="--", lw=1, label=f"CRB ({crb['mean_euclid']:.3f} px)")
     ax.set_xlabel("time from first stamp (s)")
     ax.set_ylabel("mean |error| over subapertures (px)")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p = out_dir / "error_timeseries.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    files.append(str(p))
+    files.append(_save(fig, ax, out_dir / "error_timeseries.png"))
     first = next(iter(res["algorithms"].values()))
     if first.get("by_radius") and len(first["by_radius"]) > 1:
         fig, ax = plt.subplots(figsize=(6, 4))
@@ -281,13 +286,7 @@ def write_plots(res: dict, out_dir: Path) -> list[str]:
             ax.plot(mid, [r["mean_euclid"] for r in crb["by_radius"]], "k--", label="CRB")
         ax.set_xlabel("subaperture distance from the launch (m)")
         ax.set_ylabel("mean |error| (px)")
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        fig.tight_layout()
-        p = out_dir / "error_by_radius.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        files.append(str(p))
+        files.append(_save(fig, ax, out_dir / "error_by_radius.png"))
     return files
 
 
