@@ -6,6 +6,11 @@ Topics: ``/<wfs>/frame`` (mono16 or 32FC1, possibly decimated), ``/<wfs>/true_sl
 namespace is its name; when its centroider changed during the bag its slopes are split into
 one *segment* per description, labelled ``<ns>:<algorithm>`` (``#k`` added if repeated).
 
+A recorder with ``frame_subapertures`` set writes ``/<wfs>/frame_subapertures`` (the blocks of
+chosen subapertures, see :mod:`lgs_wfs_ros.bags.subapertures`) instead of or beside frames; the
+blocks are read with :func:`lgs_wfs_ros.bags.read_subapertures`, and :class:`BagData` only
+says what is there (``subapertures``).
+
 Slopes and truths are kept as ``(F, G*G, 2)`` float32 grids (NaN where not valid); frames are
 loaded only on request and at most ``max_frames`` of them, since a long full-pupil bag does
 not fit in memory. Every user-fixable problem is a :class:`~lgs_wfs_ros.bags.BagError`.
@@ -19,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..bags import BagError, BagReader, decode_image, decode_string, join_by_stamp
+from ..bags import subapertures as subaps
 from ..sensor import Sensor, SensorError
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -60,7 +66,9 @@ class BagData:
     sensor_info: the raw JSON dict (with the simulator's extra keys);
     truth: truth stream; frames: frame stream (first ``max_frames``) or None;
     frame_count: frames in the bag; segments: list of :class:`Segment`;
-    changes: ``{namespace: [(log_ns, description dict)]}``; topics: reader.topics().
+    changes: ``{namespace: [(log_ns, description dict)]}``; topics: reader.topics();
+    subapertures: ``{"topic", "count", "selections": [indices list, ...]}`` when the bag has
+    subaperture frames (``/<wfs>/frame_subapertures``), else None.
     """
 
     path: str
@@ -72,6 +80,7 @@ class BagData:
     frame_count: int
     segments: list = field(default_factory=list)
     changes: dict = field(default_factory=dict)
+    subapertures: dict | None = None
 
     @property
     def mas_per_px(self) -> float:
@@ -83,7 +92,7 @@ def find_topics(topics: dict) -> dict:
     """Name the contract's topics in a ``{topic: (type, count)}`` map.
 
     Returns ``{"frame": t|None, "truth": t|None, "sensor": t|None, "slopes": {ns: topic},
-    "centroider": {ns: topic}}``. The frame / truth / sensor topics are the ones under the
+    "centroider": {ns: topic}, "frame_subapertures": t|None}``. The frame / truth / sensor topics are the ones under the
     namespace holding ``true_slopes`` (default ``/wfs``), else the first of their kind.
     """
     def leaf(t):
@@ -106,7 +115,8 @@ def find_topics(topics: dict) -> dict:
     slopes = {ns_of(t) or "/": t for t, ty in by_leaf.get("slopes", []) if ty == IMAGE}
     cents = {ns_of(t) or "/": t for t, ty in by_leaf.get("centroider", []) if ty == STRING}
     return {"frame": pick("frame", IMAGE), "truth": truth[0] if truth else None,
-            "sensor": pick("sensor", STRING), "slopes": slopes, "centroider": cents}
+            "sensor": pick("sensor", STRING), "slopes": slopes, "centroider": cents,
+            "frame_subapertures": pick(subaps.LEAF, IMAGE)}
 
 
 # -- reading --------------------------------------------------------------------------------
@@ -232,11 +242,16 @@ def load_bag(path, *, max_frames: int | None = 0, need_truth: bool = True) -> Ba
             ch = read_json_topic(reader, names["centroider"][ns]) if ns in names["centroider"] else []
             changes[ns] = ch
             segments += split_segments(ns, read_stream(reader, topic, flatten_slopes=True), ch)
+        sub = None
+        if names["frame_subapertures"]:
+            t = names["frame_subapertures"]
+            sub = {"topic": t, "count": topics[t][1],
+                   "selections": [d["indices"] for _, d in subaps.selections(reader, t)]}
     if sensor is not None and truth is not None and len(truth) and \
             truth.data.shape[1] != sensor.grid ** 2:
         raise BagError(f"{path}: true_slopes grid has {truth.data.shape[1]} cells, the sensor "
                        f"description a {sensor.grid} x {sensor.grid} grid")
-    return BagData(str(path), topics, sensor, info, truth, frames, frame_count, segments, changes)
+    return BagData(str(path), topics, sensor, info, truth, frames, frame_count, segments, changes, sub)
 
 
 def joined(truth: Stream, slopes: Stream):
@@ -290,6 +305,23 @@ class ContractBagWriter:
         t = f"/{self.wfs}/frame"
         self.topic(t, IMAGE, dict(VOLATILE, depth=10))
         self.w.write(t, encode_image(np.ascontiguousarray(frame), stamp_ns), _log(stamp_ns, log_ns), stamp_ns)
+
+    def frame_subapertures(self, stamp_ns: int, frame: np.ndarray, indices, log_ns: int | None = None) -> None:
+        """Write the blocks of the chosen subapertures of one frame, as the recorder does with
+        ``frame_subapertures`` set (the selection first whenever it changes)."""
+        from ..bags import encode_image
+        t = f"/{self.wfs}/{subaps.LEAF}"
+        sel_t = subaps.selection_topic(t)
+        idx = subaps.parse_indices(indices)
+        if getattr(self, "_cutter", None) is None or not np.array_equal(self._cutter.indices, idx):
+            self._cutter = subaps.Cutter(self.sensor, idx)
+            self.topic(t, IMAGE, dict(VOLATILE, depth=100))
+            self.topic(sel_t, STRING, TRANSIENT)
+            self.w.write(sel_t, self._enc_string(self._cutter.selection_json(f"/{self.wfs}/frame", t)),
+                         max(_log(stamp_ns, log_ns) - 1, 0))
+        blocks = self._cutter.cut(np.asarray(frame))
+        self.w.write(t, encode_image(blocks.reshape(-1, blocks.shape[-1]), stamp_ns), _log(stamp_ns, log_ns),
+                     stamp_ns)
 
     def _grid(self, topic: str, stamp_ns: int, slopes: np.ndarray, log_ns) -> None:
         from ..bags import encode_image

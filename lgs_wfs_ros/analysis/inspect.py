@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 from ..bags import BagReader
+from ..bags import subapertures as subaps
 from .bagdata import STRING, find_topics, read_json_topic, sensor_from_info
 
 
@@ -18,7 +19,9 @@ def bag_info(path) -> dict:
     Returns the reader's ``summary()`` (path, size_bytes, complete, profile, library,
     message_count, start_ns, end_ns, duration_s, topics {topic: {type, count, rate_hz}},
     problems) plus ``sensor`` (the JSON dict or None), ``sensor_summary`` (a one-line text)
-    and ``centroiders`` ``{namespace: [{"t_s": seconds from the bag start, "log_ns", "description"}]}``.
+    and ``centroiders`` ``{namespace: [{"t_s": seconds from the bag start, "log_ns", "description"}]}``
+    and ``subapertures`` ``{blocks topic: [{"t_s", "log_ns", "indices", "n_valid", "pixels"}]}``
+    (the selections of subaperture frames, see docs/bags.md).
     """
     with BagReader(path) as reader:
         info = reader.summary()
@@ -32,11 +35,17 @@ def bag_info(path) -> dict:
         for ns, topic in sorted(names["centroider"].items()):
             cents[ns] = [{"t_s": (log - start) / 1e9, "log_ns": log, "description": d}
                          for log, d in read_json_topic(reader, topic)]
+        sub = {}
+        for topic in subaps.find_blocks_topics(reader.topics()):
+            sub[topic] = [{"t_s": (log - start) / 1e9, "log_ns": log, "indices": d["indices"],
+                           "n_valid": d.get("n_valid"), "pixels": d.get("pixels")}
+                          for log, d in subaps.selections(reader, topic)]
     info["sensor"] = sensor
     info["sensor_summary"] = _sensor_line(sensor, str(path)) if sensor is not None else None
     info["centroiders"] = cents
+    info["subapertures"] = sub
     info["roles"] = {"frame": names["frame"], "true_slopes": names["truth"], "sensor": names["sensor"],
-                     "slopes": names["slopes"]}
+                     "slopes": names["slopes"], "frame_subapertures": names["frame_subapertures"]}
     return info
 
 
@@ -79,12 +88,31 @@ def format_info(info: dict) -> str:
         lines.append(f"centroider /{ns}: {len(changes)} description(s)")
         for c in changes:
             lines.append(f"  t = {c['t_s']:9.3f} s  {_describe(c['description'])}")
+    for topic, sels in info.get("subapertures", {}).items():
+        count = info["topics"][topic]["count"]
+        lines.append(f"subapertures {topic}: {count} frames cut to chosen subapertures, "
+                     f"{len(sels)} selection(s)" + ("" if sels else " (NO selection topic: unusable)"))
+        for c in sels:
+            lines.append(f"  t = {c['t_s']:9.3f} s  {len(c['indices'])} of {c['n_valid']} valid "
+                         f"subapertures: {_short_list(c['indices'])}")
     for p in info.get("problems", []):
         lines.append(f"problem   {p}")
-    missing = [k for k in ("frame", "true_slopes", "sensor") if info["roles"][k] is None]
+    roles = info["roles"]
+    missing = [k for k in ("frame", "true_slopes", "sensor") if roles[k] is None
+               and not (k == "frame" and roles.get("frame_subapertures"))]
     if missing:
         lines.append("note      no " + ", ".join(missing) + " topic: not a complete lgs_wfs_ros bag")
+    if roles["frame"] is None and roles.get("frame_subapertures"):
+        lines.append("note      no full frames, only chosen subapertures: `lgs-wfs replay` needs full frames")
     return "\n".join(lines)
+
+
+def _short_list(values, most: int = 24) -> str:
+    """``[3, 17, 40]``; long lists keep their first and last entries around ``...``."""
+    vals = [str(v) for v in values]
+    if len(vals) > most:
+        vals = vals[:most // 2] + ["..."] + vals[-most // 2:]
+    return "[" + ", ".join(vals) + "]"
 
 
 def inspect_bag(path, as_json: bool = False) -> str:

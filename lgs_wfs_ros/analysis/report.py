@@ -9,7 +9,9 @@ frames (:func:`simulator_model`); :mod:`..centroiding.crb` then bounds the posit
 (Poisson + read noise, flux a nuisance parameter). A bag from another tool has no such
 model and its report says so. (Rebuilding the model from the noisy frames themselves was
 tried and rejected: the spot core is 1.19 px FWHM, so Fourier re-centring of undersampled
-frames rings and the bound collapses.)
+frames rings and the bound collapses.) Neither the errors nor the CRB read the recorded frames,
+so a bag whose frames were recorded as chosen subapertures only (or not at all) gets the
+same report; the header line counts those subaperture frames.
 """
 
 from __future__ import annotations
@@ -153,7 +155,8 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
     valid, r_m = _valid(data)
     edges = radius_edges(r_m) if r_m is not None else None
     out = {"bag": data.path, "sensor": data.sensor_info or None, "mas_per_px": mas,
-           "frames": data.frame_count, "truths": len(data.truth), "algorithms": {}, "crb": None}
+           "frames": data.frame_count, "truths": len(data.truth), "algorithms": {}, "crb": None,
+           "subaperture_frames": data.subapertures}
     series = {}
     for seg in data.segments:
         stamps, est, tru, j = joined(data.truth, seg.slopes)
@@ -212,7 +215,13 @@ def _crb_block(data, r_m, edges, mas, image_model=None):
 # -- output -----------------------------------------------------------------------------------
 def format_report(res: dict) -> str:
     mas = res["mas_per_px"]
-    lines = [f"bag {res['bag']}: {res['frames']} frames, {res['truths']} truths", ""]
+    sub = res.get("subaperture_frames")
+    cut = ""
+    if sub:
+        ks = sorted({len(s) for s in sub["selections"]})
+        cut = (f" (+ {sub['count']} cut to {'/'.join(map(str, ks)) or '?'} chosen subapertures "
+               f"on {sub['topic']})")
+    lines = [f"bag {res['bag']}: {res['frames']} frames{cut}, {res['truths']} truths", ""]
     lines.append(metrics.table(res["algorithms"], mas))
     crb = res.get("crb") or {}
     if "mean_euclid" in crb:

@@ -8,8 +8,9 @@ from .errors import BagError, BagExistsError, BagWriteError
 from .join import Join, join_by_stamp
 from .reader import BagReader, recover
 from .schema import message_definition, qos_yaml, type_hash
+from .subapertures import read_subapertures
 from .writer import BagWriter
 
 __all__ = ["BagError", "BagExistsError", "BagReader", "BagWriteError", "BagWriter", "Join",
            "decode_image", "decode_string", "encode_image", "encode_string", "join_by_stamp",
-           "message_definition", "peek_stamp", "qos_yaml", "recover", "type_hash"]
+           "message_definition", "peek_stamp", "qos_yaml", "read_subapertures", "recover", "type_hash"]

@@ -6,6 +6,16 @@ receive time and publish time = source time. Topics come from the ``topics`` par
 true_slopes, slopes, sensor, centroider) with the contract's type. Frames can be decimated
 (``frame_every``) since full frames at 700 Hz are more than one Python process can write here.
 
+``frame_subapertures`` (valid-subaperture indices in the contract's order; empty: off) writes
+each kept frame as the blocks of those subapertures only, on ``/<ns>/frame_subapertures``
+(Image, k*p x p, the frame's header), with the selection as JSON on
+``/<ns>/frame_subapertures_selection`` (docs/conventions.md section 5, docs/bags.md);
+``full_frame_every`` M also keeps every Mth kept frame in full beside its blocks. The pixels
+are read in place from the CDR (numpy view) and gathered with one precomputed index. The
+geometry comes from the recorded ``/<ns>/sensor`` topic (subscribed when a selection is set);
+indices that do not fit the sensor are refused with the reason (or, if the sensor changes
+under them, no blocks are written until they do, with an error logged).
+
 The bag is closed (summary and index written) on SIGINT, SIGTERM, at the ``frames`` budget, or
 when the disk fills up (reported; what was written stays readable).
 """
@@ -16,18 +26,36 @@ import threading
 import time
 from pathlib import Path
 
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
+from ..bags import subapertures as subaps
+from ..optics import geometry
+from ..sensor import Sensor, SensorError
 from .spinning import DRAIN, run_node, take_queued
 from . import parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
 DEFAULT_TOPICS = ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor"]
+BLOCKS_QOS = {"history": "keep_last", "depth": 100, "reliability": "reliable", "durability": "volatile"}
+SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
+                 "durability": "transient_local"}
 
 
+def _namespace(topic: str) -> str:
+    return topic.rstrip("/").rsplit("/", 1)[0]
+
+
+def _indices_value(value) -> list:
+    """A parameter value as a list for :func:`subaps.parse_indices` (any empty array: [])."""
+    if value is None:
+        return []
+    if isinstance(value, (str, bytes, bool, int, float)):
+        raise ValueError(f"frame_subapertures must be an integer array, got {value!r}")
+    return list(value)
 
 
 def default_output() -> str:
@@ -47,6 +75,13 @@ class RecorderNode(Node):
                            "graph (checked every second).")
         parameters.declare(self, "frame_every", 1, "Record every Nth frame (0: no frames; "
                            "slopes and truths are always kept at full rate).", low=0, high=1000000)
+        self.declare_parameter("frame_subapertures", [], ParameterDescriptor(
+            dynamic_typing=True, description="Indices of valid subapertures (contract order) "
+            "whose blocks are written for each kept frame, instead of the full frame, on "
+            "<ns>/frame_subapertures (empty: off, full frames)."))
+        parameters.declare(self, "full_frame_every", 0, "With frame_subapertures set: also "
+                           "write every Nth kept frame in full (0: never, 1: every kept frame).",
+                           low=0, high=1000000)
         parameters.declare(self, "frames", 0, "Stop after this many frames received "
                            "(0: record until interrupted).", low=0, high=2**31 - 1)
         parameters.declare(self, "linger_s", 1.0, "After the frame budget, keep recording this "
@@ -56,6 +91,12 @@ class RecorderNode(Node):
         parameters.declare(self, "compression", "zstd", "Chunk compression.",
                            choices=("zstd", "lz4", "none"), read_only=True)
         self.add_on_set_parameters_callback(self._validate)
+        self.add_post_set_parameters_callback(self._apply)
+        try:      # an override given at start (the on-set callback does not see it)
+            self.selection = subaps.parse_indices(_indices_value(
+                self.get_parameter("frame_subapertures").value))
+        except ValueError as exc:
+            raise ValueError(f"frame_subapertures: {exc}") from None
 
         p = parameters.values(self, ("output", "overwrite", "compression", "chunk_kb"))
         out = Path(p["output"])
@@ -72,6 +113,12 @@ class RecorderNode(Node):
         self.budget_reached = False
         self._linger_timer = None
         self._subs = {}
+        self.sensors: dict[str, Sensor] = {}      # namespace -> last sensor description
+        self._selection_version = 0
+        self._cutters = {}       # frame topic -> [version, sensor, Cutter | None, reason, announced]
+        self._kept = {}          # frame topic -> frames kept (for full_frame_every)
+        self.blocks_skipped = 0
+        self.skip_reason = ""
         for topic in self.get_parameter("topics").value:
             self._subscribe(topic, qos.TYPES.get(topic.rsplit("/", 1)[-1]))
         self._discover_timer = self.create_timer(1.0, self._discover)
@@ -82,7 +129,37 @@ class RecorderNode(Node):
         for p in params:
             if p.name == "frame_every" and p.value < 0:
                 return parameters.refuse("frame_every must be >= 0")
+            if p.name == "frame_subapertures":
+                reason = self._check_selection(p.value)
+                if reason:
+                    return parameters.refuse(f"frame_subapertures: {reason}")
         return parameters.accept()
+
+    def _check_selection(self, value) -> str:
+        """Why the indices cannot be used ('' when they can): type, repeats, and the range
+        of every sensor description received so far."""
+        try:
+            idx = subaps.parse_indices(_indices_value(value))
+            for ns, sensor in sorted(self.sensors.items()):
+                n = geometry.layout(sensor).n_valid
+                if len(idx) and idx.max() >= n:
+                    raise ValueError(f"index {int(idx.max())} is out of range: {ns}/sensor has "
+                                     f"{n} valid subapertures (0..{n - 1})")
+        except ValueError as exc:
+            return str(exc)
+        return ""
+
+    def _apply(self, params):
+        for p in params:
+            if p.name == "frame_subapertures":
+                self.selection = subaps.parse_indices(_indices_value(p.value))
+                self._selection_version += 1
+                self.get_logger().info(f"frame_subapertures: {len(self.selection)} subapertures"
+                                       + ("" if len(self.selection) else " (off: full frames)"))
+                if len(self.selection):
+                    for topic in list(self._subs):
+                        if topic.rsplit("/", 1)[-1] == "frame":
+                            self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
 
     def _discover(self):
         if not self.get_parameter("discover").value or self.closing:
@@ -114,6 +191,8 @@ class RecorderNode(Node):
         self._subs[topic] = self.create_subscription(MSG_CLASSES[type_name], topic, callback,
                                                      profile, raw=True)
         self.get_logger().info(f"recording {topic} [{type_name}]")
+        if kind == "frame" and len(self.selection):
+            self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
 
     def _on_message(self, topic, kind, cdr, info):
         if self.closing:
@@ -126,21 +205,94 @@ class RecorderNode(Node):
             keep = every > 0 and (self.frames_seen - 1) % every == 0
         else:
             keep = True
+            if kind == "sensor":
+                self._on_sensor(topic, cdr)
         if keep:
             received = int(info.get("received_timestamp", 0)) or time.time_ns()
             source = int(info.get("source_timestamp", 0)) or received
+            full = True
             try:
-                self.writer.write(topic, cdr, received, source)
+                if kind == "frame" and len(self.selection):
+                    kept = self._kept[topic] = self._kept.get(topic, 0) + 1
+                    every_full = self.get_parameter("full_frame_every").value
+                    full = every_full > 0 and (kept - 1) % every_full == 0
+                    self._write_blocks(topic, cdr, received, source)
+                if full:
+                    self.writer.write(topic, cdr, received, source)
+                    self.recorded[topic] += 1
             except OSError as exc:
                 self._fail(f"writing {topic} failed: {exc}")
                 return
-            self.recorded[topic] += 1
         budget = self.get_parameter("frames").value
         if kind == "frame" and budget and self.frames_seen >= budget:
             self.budget_reached = True
             linger = self.get_parameter("linger_s").value
             self.get_logger().info(f"frame budget of {budget} reached; closing in {linger} s")
             self._linger_timer = self.create_timer(linger, self._end_linger)
+
+    def _on_sensor(self, topic, cdr):
+        """Keep the namespace's sensor description (the geometry of its frames)."""
+        try:
+            sensor = Sensor.from_json(bags.decode_string(cdr))
+        except (SensorError, TypeError, ValueError) as exc:
+            self.get_logger().error(f"{topic}: unusable sensor description: {exc}")
+            return
+        ns = _namespace(topic)
+        if self.sensors.get(ns) != sensor:
+            self.sensors[ns] = sensor
+
+    def _cutter(self, topic):
+        """The cutter for a frame topic under the current selection and sensor: (entry, reason)."""
+        sensor = self.sensors.get(_namespace(topic))
+        entry = self._cutters.get(topic)
+        if entry is not None and entry[0] == self._selection_version and entry[1] is sensor:
+            return entry
+        cutter, reason = None, ""
+        if sensor is None:
+            reason = f"no sensor description on {_namespace(topic)}/sensor yet"
+        else:
+            try:
+                cutter = subaps.Cutter(sensor, self.selection)
+            except ValueError as exc:
+                reason = f"frame_subapertures do not fit {_namespace(topic)}/sensor: {exc}"
+        entry = [self._selection_version, sensor, cutter, reason, False]
+        self._cutters[topic] = entry
+        if reason:
+            self.get_logger().error(f"{topic}: no subaperture blocks written: {reason}")
+        return entry
+
+    def _write_blocks(self, topic, cdr, received, source):
+        """Write the chosen blocks of one frame (and, first, its selection when new)."""
+        entry = self._cutter(topic)
+        cutter = entry[2]
+        if cutter is None:
+            self._skip(entry[3])
+            return
+        try:
+            msg = cutter.message(cdr)
+        except ValueError as exc:
+            self._skip(f"{topic}: {exc}")
+            return
+        out = subaps.blocks_topic(topic)
+        if not entry[4]:
+            sel = subaps.selection_topic(out)
+            for t, ty, q in ((out, qos.TYPES["frame"], BLOCKS_QOS), (sel, qos.TYPES["sensor"], SELECTION_QOS)):
+                if t not in self.recorded:
+                    self.writer.add_topic(t, ty, qos=q)
+                    self.recorded[t] = 0
+            self.writer.write(sel, bags.encode_string(cutter.selection_json(topic, out)),
+                              max(received - 1, 0))
+            self.recorded[sel] += 1
+            entry[4] = True
+            self.get_logger().info(f"recording {cutter.k} subapertures of {topic} on {out}")
+        self.writer.write(out, msg, received, source)
+        self.recorded[out] += 1
+
+    def _skip(self, reason):
+        self.blocks_skipped += 1
+        if reason != self.skip_reason:
+            self.get_logger().error(f"frame not cut into subapertures: {reason}")
+        self.skip_reason = reason
 
     def _end_linger(self):
         self._linger_timer.cancel()
