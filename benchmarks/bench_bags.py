@@ -2,6 +2,9 @@
 960 x 960 mono16 frames (1.8 MB) and 60 x 60 x 2 float32 slopes (28.8 kB).
 
 Frames are photon-noise images of a 60 x 60 grid of spots (realistic entropy for compression).
+The recorder entries time what ``recorder_node`` does per kept frame after taking it from DDS
+(that take, ~1 ms per full frame, is paid either way): write the full frame, or cut the chosen
+subapertures out of the CDR (``bags.subapertures.Cutter``) and write that small message.
 Files go to a temporary directory (page cache; the disk's own speed is measured separately as
 ``raw file write``). Best of ``repeats`` runs; one thread.
 """
@@ -13,6 +16,9 @@ import time
 import numpy as np
 
 from lgs_wfs_ros.bags import BagReader, BagWriter, decode_image, encode_image
+from lgs_wfs_ros.bags.subapertures import Cutter
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
 
 FRAME_SHAPE = (960, 960)
 
@@ -58,6 +64,47 @@ def _write(path, msgs, **kw):
         w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")
         for i, m in enumerate(msgs):
             w.write("/wfs/frame", m, i, i)
+
+
+def _record(path, msgs, n, cutter=None, **kw):
+    """What the recorder does per kept frame (n frames, cycling msgs): write it, or cut it and
+    write the blocks."""
+    if os.path.exists(path):
+        os.remove(path)
+    with BagWriter(path, **kw) as w:
+        w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")
+        w.add_topic("/wfs/frame_subapertures", "sensor_msgs/msg/Image")
+        for i in range(n):
+            m = msgs[i % len(msgs)]
+            if cutter is None:
+                w.write("/wfs/frame", m, i, i)
+            else:
+                w.write("/wfs/frame_subapertures", cutter.message(m), i, i)
+
+
+def _recorder(add, frame_msgs, tmp, repeats, quick):
+    """Recorder CPU per kept frame: full frame vs 1 % and all of the valid subapertures."""
+    sensor = Sensor()                                   # 60 x 60, 16 px: 960 x 960
+    n = geometry.layout(sensor).n_valid
+    one_pc = Cutter(sensor, list(range(0, n, 100)))      # 1 % spread over the pupil
+    every = Cutter(sensor, list(range(n)))
+    path = os.path.join(tmp, "rec.mcap")
+    t = _best(lambda: [one_pc.message(frame_msgs[0]) for _ in range(200)], repeats) / 200
+    add(f"recorder cut {one_pc.k} of {n} subapertures from a frame's CDR", t * 1e6, "us",
+        "< 1428 us (700 Hz)", "decode header (a view) + gather k*256 px + encode_image")
+    for comp, kw in (("zstd-3 (recorder default)", dict(compression="zstd")),
+                     ("none", dict(compression=None))):
+        for what, cutter in (("full frame", None), (f"1 % subapertures ({one_pc.k} of {n})", one_pc),
+                             (f"all {n} subapertures", every)):
+            if cutter is every and comp.startswith("zstd"):
+                continue
+            count = len(frame_msgs) if cutter is not one_pc else (300 if quick else 2000)
+            t = _best(lambda: _record(path, frame_msgs, count, cutter, **kw), repeats) / count
+            size = os.path.getsize(path) / count
+            note = ("excludes the DDS take (~1 ms per full frame, paid either way); "
+                    + (f"{size / 1e3:.1f} kB per frame in the bag" if kw["compression"] is None or cutter is None
+                       else "(4 distinct frames cycled: compressed size not representative)"))
+            add(f"recorder per kept frame, {what}, {comp}", t * 1e6, "us", "< 1428 us (700 Hz)", note)
 
 
 def run(quick: bool = False) -> list[dict]:
@@ -113,6 +160,7 @@ def run(quick: bool = False) -> list[dict]:
                     t = _best(read, repeats)
                     add(f"read {what} {label}", len(msgs) / t, "msg/s", target,
                         f"{size * len(msgs) / t / 1e6:.0f} MB/s, images() into one array")
+        _recorder(add, frame_msgs, tmp, repeats, quick)
     return results
 
 

@@ -242,7 +242,8 @@ class RecorderNode(Node):
             self.sensors[ns] = sensor
 
     def _cutter(self, topic):
-        """The cutter for a frame topic under the current selection and sensor: (entry, reason)."""
+        """``[version, sensor, Cutter | None, reason it is None, selection written]`` for a
+        frame topic under the current selection and sensor (rebuilt when either changes)."""
         sensor = self.sensors.get(_namespace(topic))
         entry = self._cutters.get(topic)
         if entry is not None and entry[0] == self._selection_version and entry[1] is sensor:
@@ -257,8 +258,6 @@ class RecorderNode(Node):
                 reason = f"frame_subapertures do not fit {_namespace(topic)}/sensor: {exc}"
         entry = [self._selection_version, sensor, cutter, reason, False]
         self._cutters[topic] = entry
-        if reason:
-            self.get_logger().error(f"{topic}: no subaperture blocks written: {reason}")
         return entry
 
     def _write_blocks(self, topic, cdr, received, source):
@@ -266,7 +265,7 @@ class RecorderNode(Node):
         entry = self._cutter(topic)
         cutter = entry[2]
         if cutter is None:
-            self._skip(entry[3])
+            self._skip(f"{topic}: {entry[3]}")
             return
         try:
             msg = cutter.message(cdr)
@@ -291,7 +290,7 @@ class RecorderNode(Node):
     def _skip(self, reason):
         self.blocks_skipped += 1
         if reason != self.skip_reason:
-            self.get_logger().error(f"frame not cut into subapertures: {reason}")
+            self.get_logger().error(f"frame not cut into subapertures (no blocks written): {reason}")
         self.skip_reason = reason
 
     def _end_linger(self):
