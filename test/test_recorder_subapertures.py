@@ -309,3 +309,36 @@ def test_recorder_refuses_a_bad_start_value(ros, tmp_path):
         RecorderNode(context=ros.context, parameter_overrides=[
             Parameter("output", value=str(out)), Parameter("frame_subapertures", value=[3, 3])])
     assert not out.exists()
+
+
+@pytest.mark.ros
+def test_sensor_change_that_breaks_the_selection_skips_blocks_with_the_reason(ros, tmp_path):
+    from std_msgs.msg import String
+    out = tmp_path / "chg.mcap"
+    rig = FramePublisher(ros, SMALL)
+    last = geometry.layout(SMALL).n_valid - 1
+    rec = make_recorder(ros, out, frames=4, linger_s=0.5, frame_subapertures=[last], topics=["/wfs/frame"])
+    assert wait_for(lambda: rec.sensors.get("/wfs") == SMALL and rig.pub.get_subscription_count() >= 1,
+                    timeout=20)
+    time.sleep(0.5)
+    rig.send(rand_frame(SMALL, 0), T0)
+    assert wait_for(lambda: rec.frames_seen == 1, timeout=30)
+    smaller = SMALL.replace(n_subaps=4, diameter_m=2.0)              # 12 valid subapertures
+    rig.sensor_pub.publish(String(data=smaller.to_json()))
+    assert wait_for(lambda: rec.sensors["/wfs"] == smaller, timeout=20)
+    rig.send(rand_frame(smaller, 1), T0 + DT)
+    assert wait_for(lambda: rec.blocks_skipped == 1, timeout=30)
+    assert "do not fit" in rec.skip_reason and "out of range" in rec.skip_reason
+    # a change is now checked against the new sensor
+    n = geometry.layout(smaller).n_valid
+    assert not set_param(ros, "frame_subapertures", [n]).successful
+    assert set_param(ros, "frame_subapertures", [n - 1, 0]).successful
+    frames = [rand_frame(smaller, k) for k in (2, 3)]
+    for k, f in enumerate(frames):
+        rig.send(f, T0 + (2 + k) * DT)
+    assert wait_for(lambda: rec.done, timeout=30)
+    segs = subaps.subaperture_segments(out)
+    assert [s.indices.tolist() for s in segs] == [[last], [n - 1, 0]]
+    assert segs[1].selection["n_valid"] == n and len(segs[0]) == 1
+    np.testing.assert_array_equal(segs[1].blocks,
+                                  geometry.frame_to_stack(np.stack(frames), geometry.layout(smaller))[:, [n - 1, 0]])
