@@ -102,6 +102,53 @@ def test_noise_free_shift_recovery():
     assert np.abs(c.centroid(image_at(big)) - big).max() < 0.3
 
 
+def test_linearized_cmf_exact_within_one_pixel():
+    """With its response calibrated and inverted (linearize=True) the CMF returns any
+    imposed shift within +-1 px (2-D, corners included) to 1e-3 px, and its NEA is the
+    raw NEA mapped through the inverse response (unchanged at the centre)."""
+    image_at = elongated_model(sigma=CORE, length=3.0)
+    c, *_ = static_cmf(image_at, linearize=True)
+    with pytest.raises(ValueError, match="calibrate_response"):
+        c.centroid(image_at(np.zeros((N, 2))))
+    assert c.calibrate_response(image_at) < 1e-3          # fit residual of the response, px
+    rng = np.random.default_rng(5)
+    for box in (0.15, 0.5, 1.0):
+        sh = rng.uniform(-box, box, (N, 2))
+        np.testing.assert_allclose(c.centroid(image_at(sh)), sh, atol=1e-3)
+    corners = np.array([[1, 1], [-1, 1], [1, -1], [-1, -1]], float)[rng.integers(0, 4, N)]
+    np.testing.assert_allclose(c.centroid(image_at(corners)), corners, atol=1e-3)
+    # at the centre the response is the identity: same NEA as the raw filter
+    raw, *_ = static_cmf(image_at)
+    x = image_at(np.zeros((N, 2)))
+    raw.centroid(x)
+    c.centroid(x)
+    np.testing.assert_allclose(c.nea, raw.nea, rtol=1e-2)
+    # a reference change invalidates the calibration; it is redone with the kept image_at
+    c.set_reference(image_at(np.zeros((N, 2))))
+    np.testing.assert_allclose(c.centroid(image_at(sh)), sh, atol=0.02)
+
+
+@pytest.mark.parametrize("detector", ["polar", "cartesian"])
+def test_linearized_model_reference_calibrates_itself(detector):
+    """reference='model' scans its own model images: exact on them over +-1 px; the
+    history reference refuses linearize with the reason."""
+    s = Sensor.paper_single(detector)
+    c = make_centroider("cmf", s, reference="model", weighting="model", linearize=True)
+    n = c.n
+    rng = np.random.default_rng(6)
+    sh = rng.uniform(-1, 1, (200, n, 2))
+    est = np.stack([c.to_pixel_axes(c.centroid(c.model_images(10e3, v))) for v in sh])
+    assert np.abs(est - sh).max() < 1e-3
+    raw = make_centroider("cmf", s, reference="model", weighting="model")
+    err_raw = np.stack([raw.to_pixel_axes(raw.centroid(c.model_images(10e3, v))) for v in sh]) - sh
+    assert np.abs(err_raw).max() > 0.02                  # what the linearisation removed
+    assert "linearize" in c.describe()
+    with pytest.raises(ValueError, match="linearize needs"):
+        make_centroider("cmf", s, reference="history", linearize=True)
+    with pytest.raises(ValueError, match="linearize must be"):
+        make_centroider("cmf", s, reference="model", linearize="yes")
+
+
 def test_fourier_derivative_well_sampled_spot_to_1e3():
     """With the Fourier dither (no derivative images given) a well-sampled spot is fine."""
     image_at = elongated_model(sigma=1.0, length=2.0)

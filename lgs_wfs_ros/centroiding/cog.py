@@ -258,7 +258,8 @@ def model_spots(p: int, e: np.ndarray, core_fwhm: np.ndarray, par_fwhm: np.ndarr
     edges = np.arange(p + 1) - 0.5
     z = (edges[None, None, :] - pos[..., None]) / (np.sqrt(2.0) * sc[:, None, None, None])         # (n, m, 2, p+1)
     f = np.diff(0.5 * erf(z), axis=-1)                                                              # (n, m, 2, p)
-    return np.einsum("m,nmy,nmx->nyx", wt, f[:, :, 1], f[:, :, 0])
+    fy = np.swapaxes(f[:, :, 1], 1, 2) * wt                                                         # (n, p, m)
+    return fy @ f[:, :, 0]                                                                          # (n, p, p)
 
 
 def _covariance(e: np.ndarray, s_par: np.ndarray, s_perp: np.ndarray) -> np.ndarray:

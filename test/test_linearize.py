@@ -1,0 +1,56 @@
+"""Response linearisation (centroiding/linearize.py) on analytic responses."""
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros.centroiding.linearize import ResponseMap, chebyshev_basis, transform_covariance
+
+
+def response(s):
+    """A smooth, coupled, compressive response like a CMF's: ``(n, 2)`` -> ``(n, 2)``."""
+    x, y = s[:, 0], s[:, 1]
+    return np.stack([x - 0.08 * x ** 3 - 0.05 * x * y ** 2, 0.9 * y - 0.1 * y ** 3 + 0.03 * x * y], axis=1)
+
+
+def test_chebyshev_basis_matches_numpy():
+    u = np.linspace(-1, 1, 7)
+    t, d = chebyshev_basis(u, 6)
+    for k in range(7):
+        ck = np.zeros(k + 1)
+        ck[k] = 1
+        np.testing.assert_allclose(t[:, k], np.polynomial.chebyshev.chebval(u, ck), atol=1e-12)
+        np.testing.assert_allclose(d[:, k], np.polynomial.chebyshev.chebval(u, np.polynomial.chebyshev.chebder(ck)), atol=1e-11)
+
+
+def test_fit_and_invert_analytic_response():
+    n = 50
+    rm = ResponseMap.fit(response, n, extent=1.1, points=12, degree=8)
+    assert rm.fit_error < 1e-10                       # a cubic is inside the basis
+    s = np.random.default_rng(0).uniform(-1, 1, (n, 2))
+    est, jac = rm.invert(response(s))
+    np.testing.assert_allclose(est, s, atol=1e-8)
+    h = 1e-6
+    num = np.stack([(response(s + [h, 0]) - response(s - [h, 0])) / (2 * h),
+                    (response(s + [0, h]) - response(s - [0, h])) / (2 * h)], axis=2)
+    np.testing.assert_allclose(jac, num, atol=1e-5)   # at the last Newton iterate
+
+
+def test_outside_the_box_and_nan_rows():
+    rm = ResponseMap.fit(response, 3, extent=1.1, points=10, degree=6)
+    m = np.array([[5.0, -4.0], [np.nan, 0.1], [0.2, 0.1]])
+    est, jac = rm.invert(m)
+    np.testing.assert_array_equal(est[0], m[0])       # outside the calibration: unchanged
+    np.testing.assert_array_equal(jac[0], np.eye(2))
+    assert np.isnan(est[1]).any()
+    assert np.isfinite(est[2]).all()
+
+
+def test_covariance_transform():
+    jac = np.array([[[2.0, 0.0], [0.0, 0.5]]])
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]]])
+    np.testing.assert_allclose(transform_covariance(cov, jac), [[[1.0, 0.0], [0.0, 4.0]]])
+
+
+def test_bad_degree_refused():
+    with pytest.raises(ValueError, match="degree"):
+        ResponseMap.fit(response, 2, points=5, degree=5)
