@@ -342,3 +342,10 @@ def test_sensor_change_that_breaks_the_selection_skips_blocks_with_the_reason(ro
     assert segs[1].selection["n_valid"] == n and len(segs[0]) == 1
     np.testing.assert_array_equal(segs[1].blocks,
                                   geometry.frame_to_stack(np.stack(frames), geometry.layout(smaller))[:, [n - 1, 0]])
+    # full_frame_every 0: the frame topic is in the bag with no message; replay refuses, inspect says so
+    with bags.BagReader(out) as r:
+        assert r.topics()["/wfs/frame"][1] == 0
+    with pytest.raises(BagError, match="replay needs full frames"):
+        replay_bag(out, ["cog"], out=tmp_path / "r.mcap", quiet=True)
+    text = inspect_bag(out)
+    assert "2 of 12 valid subapertures: [11, 0]" in text and "`lgs-wfs replay` needs full frames" in text

@@ -291,6 +291,7 @@ class ContractBagWriter:
         self.w = BagWriter(path, overwrite=overwrite, compression=compression)
         self._enc_string = encode_string
         self._topics = set()
+        self._cutter = None        # subaperture cutter of the current selection
         self.topic(f"/{self.wfs}/sensor", STRING, TRANSIENT)
         self.w.write(f"/{self.wfs}/sensor", encode_string(sensor.to_json(**(sensor_extra or {}))),
                      int(log_ns or 0))
@@ -313,7 +314,7 @@ class ContractBagWriter:
         t = f"/{self.wfs}/{subaps.LEAF}"
         sel_t = subaps.selection_topic(t)
         idx = subaps.parse_indices(indices)
-        if getattr(self, "_cutter", None) is None or not np.array_equal(self._cutter.indices, idx):
+        if self._cutter is None or not np.array_equal(self._cutter.indices, idx):
             self._cutter = subaps.Cutter(self.sensor, idx)
             self.topic(t, IMAGE, dict(VOLATILE, depth=100))
             self.topic(sel_t, STRING, TRANSIENT)

@@ -102,7 +102,8 @@ def format_info(info: dict) -> str:
                and not (k == "frame" and roles.get("frame_subapertures"))]
     if missing:
         lines.append("note      no " + ", ".join(missing) + " topic: not a complete lgs_wfs_ros bag")
-    if roles["frame"] is None and roles.get("frame_subapertures"):
+    no_frames = roles["frame"] is None or info["topics"][roles["frame"]]["count"] == 0
+    if no_frames and roles.get("frame_subapertures"):
         lines.append("note      no full frames, only chosen subapertures: `lgs-wfs replay` needs full frames")
     return "\n".join(lines)
 

@@ -67,7 +67,8 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
     with BagReader(src) as reader:
         topics = reader.topics()
         names = find_topics(topics)
-        if names["frame"] is None and names["frame_subapertures"] is not None:
+        no_frames = names["frame"] is None or topics[names["frame"]][1] == 0
+        if no_frames and names["frame_subapertures"] is not None:
             raise BagError(f"{src}: replay needs full frames, and this bag has only the blocks of chosen "
                            f"subapertures ({names['frame_subapertures']}: recorded with the recorder's "
                            "frame_subapertures set); record with full_frame_every >= 1 to replay")
