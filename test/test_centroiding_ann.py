@@ -166,3 +166,57 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     else:
         with pytest.raises(ValueError, match="'ann_pupil' not found"):
             make_centroider("ann", SENSOR)
+
+
+def test_folded_normalisation_equals_plain_path(tmp_path):
+    """The graph with the sum normalisation folded in gives what dividing in numpy gives,
+    on stacks and on frames (every block of the grid, then the valid ones), and bad
+    subapertures still come out NaN."""
+    from lgs_wfs_ros.centroiding.ann import TOTAL_OUTPUT, fold_sum_normalisation
+    meta = dict(META, conditioning="e_r")
+    path = build(tmp_path / "cog.onnx", cog_weights(), meta, cond_width=3)
+    folded = fold_sum_normalisation(onnx.load(str(path)), "pixels", 256)
+    assert TOTAL_OUTPUT in [o.name for o in folded.graph.output]
+    onnx.checker.check_model(folded)
+    c = make_centroider("ann", SENSOR, model=str(path))
+    assert c.folded is not None
+    x = stack(3)
+    x[5] = 0
+    frame = geometry.stack_to_frame(x.astype(np.uint16), LAY)
+    fast_stack, fast_frame = c.centroid(x), c.centroid(frame)
+    c.folded = None
+    plain = c.centroid(x)
+    np.testing.assert_allclose(fast_stack, plain, atol=1e-5, equal_nan=True)
+    np.testing.assert_allclose(fast_frame, plain, atol=1e-5, equal_nan=True)
+    assert np.isnan(fast_frame[5]).all() and np.isfinite(np.delete(fast_frame, 5, axis=0)).all()
+
+
+def test_unfoldable_graph_keeps_the_plain_path(tmp_path):
+    """A pixel input used by something other than one constant MatMul is not folded."""
+    from lgs_wfs_ros.centroiding.ann import fold_sum_normalisation
+    path = tmp_path / "relu_first.onnx"
+    inputs = [helper.make_tensor_value_info("pixels", TensorProto.FLOAT, ["N", 256])]
+    nodes = [helper.make_node("Relu", ["pixels"], ["r"]), helper.make_node("MatMul", ["r", "W"], ["out"])]
+    graph = helper.make_graph(nodes, "g", inputs, [helper.make_tensor_value_info("out", TensorProto.FLOAT, ["N", 2])],
+                              [numpy_helper.from_array(cog_weights(), "W")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in META.items():
+        model.metadata_props.add(key=f"lgs_wfs.{k}", value=json.dumps(v))
+    onnx.save(model, str(path))
+    assert fold_sum_normalisation(model, "pixels", 256) is None
+    c = make_centroider("ann", SENSOR, model=str(path))
+    assert c.folded is None
+    x = stack(4)
+    np.testing.assert_allclose(c.centroid(x), make_centroider("cog", SENSOR).centroid(x), atol=1e-4)
+
+
+@pytest.mark.parametrize("name,options", [("cog", {}), ("cmf", {"reference": "model", "weighting": "model"})])
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32, np.float64])
+def test_frame_fast_path_equals_stack_path(name, options, dtype):
+    """CoG and the model-weighted CMF cast a frame block by block in one pass; the
+    answer is the one the valid-block stack gives."""
+    c = make_centroider(name, SENSOR, **options)
+    x = stack(5).astype(dtype)
+    frame = geometry.stack_to_frame(x, LAY)
+    np.testing.assert_allclose(c.centroid(frame), c.centroid(x), atol=1e-6)

@@ -21,6 +21,12 @@ is accepted too):
 Pixel input: float32 ``(batch, p*p)``, row-major subaperture pixels (block pixel axes: the
 local frame on a polar detector). Output: ``(batch, 2)``.
 
+Speed: for ``input_norm = "sum"`` models whose pixel input feeds one ``MatMul`` with a
+constant weight matrix (every model ``learning/export.py`` writes), the normalisation is
+folded into the graph at load time (:func:`fold_sum_normalisation`): one extra weight column
+of ones gives each subaperture's total in the same product, and the first layer is divided
+by it, ``(x @ W) / sum(x) = (x / sum(x)) @ W``, which saves two passes over the stack.
+
 Model lookup (:func:`resolve_model`): an existing path; else a name (with or without
 ``.onnx``) in the repository's ``models/``, then ``sys.prefix/share/lgs_wfs_ros/models``,
 then the directories in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated).
@@ -101,17 +107,82 @@ def read_metadata(meta_map: dict) -> dict:
     return md
 
 
-def open_session(path: Path):
-    """onnxruntime session with one intra-op and one inter-op thread (CPU)."""
+def open_session(path):
+    """onnxruntime session with one intra-op and one inter-op thread (CPU).
+
+    Args:
+        path: model file, or the serialised model (``bytes``).
+    """
     import onnxruntime as ort
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
     so.inter_op_num_threads = 1
     so.log_severity_level = 3
     try:
-        return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        src = path if isinstance(path, bytes) else str(path)
+        return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own exception types
         raise ValueError(f"ann: cannot load model {str(path)!r}: {exc}") from exc
+
+
+TOTAL_OUTPUT = "_lgs_wfs_total"
+# A frame is cast block by block in one pass and the network run on every block of the
+# grid (~30 % outside the pupil) when that is cheaper than gathering the valid blocks
+# first: for small networks (the paper's 4,146 weights), not for ann_pupil's 26,000.
+ALL_BLOCKS_MAX_WEIGHTS = 10_000
+
+
+def fold_sum_normalisation(model, input_name: str, width: int):
+    """Fold the per-subaperture sum normalisation into the model's first product.
+
+    Args:
+        model: ``onnx.ModelProto`` whose input ``input_name`` (``(batch, width)``) takes
+            sum-normalised pixels.
+        input_name: the pixel input.
+        width: pixels per subaperture, ``p*p``.
+
+    Returns:
+        A new ``ModelProto`` taking raw counts on the same input, with an extra output
+        ``TOTAL_OUTPUT`` ``(batch, 1)`` (each subaperture's total), or None when the graph
+        does not have the foldable pattern (the pixel input used once, by a ``MatMul``
+        with a constant ``(width, h)`` matrix).
+    """
+    import onnx
+    from onnx import helper, numpy_helper
+
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    g = m.graph
+    users = [n for n in g.node if input_name in n.input]
+    inits = {i.name: i for i in g.initializer}
+    if len(users) != 1 or users[0].op_type != "MatMul" or list(users[0].input).index(input_name) != 0 \
+            or users[0].input[1] not in inits:
+        return None
+    mm = users[0]
+    w = numpy_helper.to_array(inits[mm.input[1]])
+    if w.ndim != 2 or w.shape[0] != width:
+        return None
+    h = w.shape[1]
+    if sum(mm.input[1] in n.input for n in g.node) == 1:
+        g.initializer.remove(inits[mm.input[1]])
+    pre = "_lgs_wfs_fold_"
+    g.initializer.extend([
+        numpy_helper.from_array(np.concatenate([w, np.ones((width, 1), w.dtype)], axis=1), pre + "w"),
+        numpy_helper.from_array(np.array([0], np.int64), pre + "i0"),
+        numpy_helper.from_array(np.array([h], np.int64), pre + "ih"),
+        numpy_helper.from_array(np.array([h + 1], np.int64), pre + "ih1"),
+        numpy_helper.from_array(np.array([1], np.int64), pre + "axis")])
+    out = mm.output[0]
+    k = list(g.node).index(mm)
+    g.node.remove(mm)
+    new = [helper.make_node("MatMul", [input_name, pre + "w"], [pre + "ext"]),
+           helper.make_node("Slice", [pre + "ext", pre + "i0", pre + "ih", pre + "axis"], [pre + "num"]),
+           helper.make_node("Slice", [pre + "ext", pre + "ih", pre + "ih1", pre + "axis"], [TOTAL_OUTPUT]),
+           helper.make_node("Div", [pre + "num", TOTAL_OUTPUT], [out])]
+    for j, node in enumerate(new):
+        g.node.insert(k + j, node)
+    g.output.append(helper.make_tensor_value_info(TOTAL_OUTPUT, onnx.TensorProto.FLOAT, ["batch", 1]))
+    return m
 
 
 class ANN(Centroider):
@@ -162,6 +233,22 @@ class ANN(Centroider):
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
+        self.folded = None
+        if md["input_norm"] == "sum":
+            self.folded = self._fold()
+
+    def _fold(self):
+        """Session of the model with the normalisation folded in, or None (not foldable)."""
+        import onnx
+        try:
+            model = fold_sum_normalisation(onnx.load(str(self.path)), self.input_name, self.p * self.p)
+        except Exception:   # an unusual graph: keep the plain path
+            return None
+        if model is None:
+            return None
+        weights = sum(int(np.prod(i.dims)) for i in model.graph.initializer)
+        self._all_blocks = weights <= ALL_BLOCKS_MAX_WEIGHTS
+        return open_session(model.SerializeToString())
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """Raw model output ``(n, 2)`` float64 for ``(n, p*p)`` float32 inputs."""
@@ -174,20 +261,50 @@ class ANN(Centroider):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(x.shape[0], 2)}")
         return out
 
-    def centroid(self, data) -> np.ndarray:
-        """As :meth:`Centroider.centroid` (bad rows go through the model as NaN/0, then NaN)."""
-        raw = np.asarray(data)
+    def _run_folded(self, x: np.ndarray, all_blocks: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(output ``(m, 2)`` float64, totals ``(m,)``) of the folded model on raw counts
+        ``x (m, p*p)``: the valid subapertures, or every block of the grid (``all_blocks``)."""
+        feed = {self.input_name: x}
+        if self.cond is not None:
+            if all_blocks:
+                if "_cond_rows" not in self.__dict__:
+                    self._cond_rows = self.pad_rows(self.cond[1])
+                feed[self.cond[0]] = self._cond_rows
+            else:
+                feed[self.cond[0]] = self.cond[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out, total = self.folded.run(None, feed)
+        if out.shape != (x.shape[0], 2):
+            raise ValueError(f"ann: model output has shape {out.shape}, expected {(x.shape[0], 2)}")
+        return np.asarray(out, dtype=np.float64), total[:, 0]
+
+    def _run_stack(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(raw output ``(n, 2)``, totals ``(n,)``) for a frame or stack, valid blocks only."""
         x = self.float_stack(raw).reshape(self.n, -1)
         owned = not np.may_share_memory(x, raw)
         if x.dtype != np.float32:
             x, owned = x.astype(np.float32), True
+        if self.folded is not None:                     # totals come out of the first product
+            return self._run_folded(np.ascontiguousarray(x))
         total = x @ self._ones                          # BLAS row sums (faster than .sum)
-        ok = np.isfinite(total) & (total > 0)
         if self.meta["input_norm"] == "sum":
             with np.errstate(divide="ignore", invalid="ignore"):
                 scale = (1.0 / total)[:, None]
                 x = np.multiply(x, scale, out=x) if owned else x * scale
-        out = self.run(np.ascontiguousarray(x)) * self.meta["output_scale"]
+        return self.run(np.ascontiguousarray(x)), total
+
+    def centroid(self, data) -> np.ndarray:
+        """As :meth:`Centroider.centroid` (bad rows go through the model as NaN/0, then NaN)."""
+        raw = np.asarray(data)
+        rows = self.frame_rows(raw) if self.folded is not None and self._all_blocks else None
+        if rows is not None:                            # a frame: every block in one pass
+            x = rows if rows.dtype == np.float32 else rows.astype(np.float32)
+            out, total = self._run_folded(x, all_blocks=True)
+            out, total = out[self.valid_rows], total[self.valid_rows]
+        else:
+            out, total = self._run_stack(raw)
+        ok = np.isfinite(total) & (total > 0)
+        out = out * self.meta["output_scale"]
         if self.meta["output_frame"] == "local":
             out = geometry.local_to_detector(out, self.layout.e)
         return self.finish(self.to_pixel_axes(out), ok)

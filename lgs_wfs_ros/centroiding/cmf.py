@@ -339,13 +339,11 @@ class CMF(Centroider):
             r3 = np.concatenate([r, np.ones((self.n, 1, r.shape[2]))], axis=1)
             q = np.einsum("nkp,np,nlp->nkl", r, var, r)
             self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2))
+            self._padded = None
         return self._model_R
 
-    def centroid(self, data) -> np.ndarray:
-        """As :meth:`Centroider.centroid`. With model weighting the filter only changes with
-        the reference, so a frame costs one ``(n, 3, pp)`` contraction (slopes and flux)."""
-        if self.weighting != "model":
-            return super().centroid(data)
+    def _stack_products(self, data):
+        """Model weighting on the valid blocks: ``([R; 1] x (n, 3), cached filter)``."""
         stack = self.float_stack(data)
         flat = stack.reshape(self.n, -1)
         if self.ref.source == "history":
@@ -353,8 +351,26 @@ class CMF(Centroider):
             self.ref.observe(stack, np.isfinite(total) & (total > 0))
         else:
             self.ref.observe(None, None)
-        r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+        filt = self._model_filter()
+        r3, r3_32 = filt[3], filt[4]
         m = np.einsum("nkp,np->nk", r3 if flat.dtype == np.float64 else r3_32, flat).astype(np.float64)
+        return m, filt
+
+    def centroid(self, data) -> np.ndarray:
+        """As :meth:`Centroider.centroid`. With model weighting the filter only changes with
+        the reference, so a frame costs one ``(n, 3, pp)`` contraction (slopes and flux)."""
+        if self.weighting != "model":
+            return super().centroid(data)
+        rows = None if self.ref.source == "history" else self.frame_rows(data)
+        if rows is not None:                    # a frame: every block cast in one pass
+            self.ref.observe(None, None)
+            r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+            if self._padded is None:
+                self._padded = (self.pad_rows(r3), self.pad_rows(r3_32))
+            pad = self._padded[0] if rows.dtype == np.float64 else self._padded[1]
+            m = np.einsum("nkp,np->nk", pad, rows)[self.valid_rows].astype(np.float64)
+        else:
+            m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p
         ok = np.isfinite(m).all(axis=1) & (m[:, 2] > 0) & (flux > 0) & fok
         with np.errstate(divide="ignore", invalid="ignore"):

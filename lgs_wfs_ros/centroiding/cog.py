@@ -44,9 +44,14 @@ class CoG(Centroider):
 
     def centroid(self, data) -> np.ndarray:
         """As :meth:`Centroider.centroid`; one matrix product gives totals and moments."""
-        flat = self.float_stack(data).reshape(self.n, -1)
-        w = self._w3 if flat.dtype == np.float64 else self._w332
-        m = (flat @ w).astype(np.float64)                       # (n, 3)
+        rows = self.frame_rows(data)
+        if rows is not None:                                    # a frame: all blocks, then keep valid
+            w = self._w3 if rows.dtype == np.float64 else self._w332
+            m = (rows @ w)[self.valid_rows].astype(np.float64)  # (n, 3)
+        else:
+            flat = self.float_stack(data).reshape(self.n, -1)
+            w = self._w3 if flat.dtype == np.float64 else self._w332
+            m = (flat @ w).astype(np.float64)                   # (n, 3)
         denom = m[:, 0] - self.background * self.p * self.p
         ok = np.isfinite(m).all(axis=1) & (m[:, 0] > 0) & (denom > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
