@@ -109,6 +109,8 @@ def run(quick: bool = False) -> list[dict]:
         ("wcog", "wcog", {}, "", reps),
         ("cmf (static model reference, model weighting)", "cmf",
          {"reference": "model", "weighting": "model"}, "< 1 ms and >= 5x faster than aotools", reps),
+        ("cmf (static model reference, model weighting, linearized)", "cmf",
+         {"reference": "model", "weighting": "model", "linearize": True}, "", reps),
         ("cmf (paper: history of 5, image weighting, rebuilt every frame)", "cmf", {}, "", slow_reps),
         ("cmf (history of 5, model weighting, update_period 100)", "cmf",
          {"weighting": "model", "update_period": 100}, "", reps),
