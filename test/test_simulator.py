@@ -165,3 +165,28 @@ def test_frozen_flow_frames_same_seed_bit_for_bit(sensor):
     assert not np.array_equal(a[0].truth, a[1].truth)
     if not sensor.is_single:
         assert 0.1 < a[0].truth.std() < 2.0                   # pixels: a sane tilt scale
+
+
+@pytest.mark.parametrize("detector", ["polar", "cartesian"])
+@pytest.mark.parametrize("profile", ["evolving", "uncentred", "random"])
+def test_next_batch_renders_what_next_renders(detector, profile):
+    """Frames rendered in batches equal frames rendered one by one (noise-free), with the
+    same truths, profiles, indices and times; with noise, the same mean counts."""
+    from lgs_wfs_ros.optics.simulator import SimulationConfig, Simulator
+    s = Sensor.paper_single(detector)
+    one = Simulator(s, SimulationConfig(profile=profile, noise=False))
+    many = Simulator(s, SimulationConfig(profile=profile, noise=False))
+    a = [one.next() for _ in range(40)]
+    b = many.next_batch(25) + many.next_batch(15)
+    assert many.index == one.index == 40
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.frame, y.frame)
+        np.testing.assert_array_equal(x.truth, y.truth)
+        np.testing.assert_allclose(x.profile, y.profile)
+        np.testing.assert_allclose(x.truncated, y.truncated)
+        assert (x.index, x.time_s) == (y.index, y.time_s)
+    noisy = Simulator(s, SimulationConfig(profile=profile, seed=3)).next_batch(400)
+    mean = np.mean([f.frame.astype(float).sum() for f in noisy])
+    assert abs(mean - s.photons) < 5 * np.sqrt(s.photons / 400)      # per_field photons
+    with pytest.raises(ValueError, match="m must be"):
+        many.next_batch(0)

@@ -58,6 +58,10 @@ def _sensor_params():
     return out
 
 
+BATCH_FRAMES = 32            # frames rendered together for a small sensor
+BATCH_SUBAPERTURES = 1024    # ... as long as they hold at most this many spots
+
+
 class SimulatorNode(Node):
     def __init__(self, **kwargs):
         kwargs.setdefault("namespace", "wfs")
@@ -175,13 +179,18 @@ class SimulatorNode(Node):
         stamp_ns = time.time_ns()
         due = time.monotonic()
         lag_logged = 0.0
+        queue, source = [], None
         while not self._stop.is_set():
             budget = self.get_parameter("frames").value
             if budget and self.published >= budget:
                 break
             with self._lock:
                 sim = self.sim
-                frame = sim.next()
+                if sim is not source:                      # new parameters: drop the old batch
+                    queue, source = [], sim
+                if not queue:
+                    queue = self._make_frames(sim, budget - self.published if budget else None)
+                frame = queue.pop(0)
                 layout = sim.layout
                 period_s = 1.0 / sim.sensor.frame_rate_hz
             truth = geometry.slopes_to_grid(frame.truth, layout)
@@ -199,6 +208,16 @@ class SimulatorNode(Node):
                 self.get_logger().warning(f"simulation runs {-delay:.1f} s behind {rate:g} Hz")
                 due = time.monotonic()
         self.get_logger().info(f"published {self.published} frames")
+
+    @staticmethod
+    def _make_frames(sim, left):
+        """The next frames: a batch of up to ``BATCH_SUBAPERTURES`` spots rendered together
+        for a small sensor (the paper's single subaperture: ~0.3 ms instead of ~1 ms per
+        frame), one frame at a time for the full pupil."""
+        k = max(1, min(BATCH_FRAMES, BATCH_SUBAPERTURES // sim.layout.n_valid))
+        if left is not None:
+            k = max(1, min(k, left))
+        return sim.next_batch(k) if k > 1 else [sim.next()]
 
     def stop(self):
         self._stop.set()
