@@ -180,6 +180,7 @@ class SimulatorNode(Node):
         due = time.monotonic()
         lag_logged = 0.0
         queue, source = [], None
+        first = last = None
         while not self._stop.is_set():
             budget = self.get_parameter("frames").value
             if budget and self.published >= budget:
@@ -193,10 +194,14 @@ class SimulatorNode(Node):
                 frame = queue.pop(0)
                 layout = sim.layout
                 period_s = 1.0 / sim.sensor.frame_rate_hz
+            if first is None:          # the schedule starts with the first frame, not its set-up
+                due = time.monotonic()
             truth = geometry.slopes_to_grid(frame.truth, layout)
             self._frame_pub.publish(bags.encode_image(frame.frame, stamp_ns))
             self._truth_pub.publish(bags.encode_image(truth, stamp_ns))
             self.published += 1
+            last = time.monotonic()
+            first = last if first is None else first
             stamp_ns += int(round(period_s * 1e9))
             rate = self.get_parameter("rate_hz").value or 1.0 / period_s
             due += 1.0 / rate
@@ -207,7 +212,12 @@ class SimulatorNode(Node):
                 lag_logged = time.monotonic()
                 self.get_logger().warning(f"simulation runs {-delay:.1f} s behind {rate:g} Hz")
                 due = time.monotonic()
-        self.get_logger().info(f"published {self.published} frames")
+        if first is not None and last > first:
+            span = last - first
+            self.get_logger().info(f"published {self.published} frames in {span:.3f} s "
+                                   f"({(self.published - 1) / span:.1f} Hz wall-clock)")
+        else:
+            self.get_logger().info(f"published {self.published} frames")
 
     @staticmethod
     def _make_frames(sim, left):
