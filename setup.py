@@ -24,6 +24,8 @@ setup(
         ("share/" + package_name + "/launch", glob("launch/*.py")),
         ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
         ("share/" + package_name + "/models", glob("models/*.onnx") + glob("models/*.json")),
+        ("share/" + package_name + "/models/paper_prior", glob("models/paper_prior/*.onnx")
+         + glob("models/paper_prior/*.md")),
     ],
     python_requires=">=3.10",
     # Ranges here; the exact versions CI tests with are pinned in constraints.txt.

@@ -56,9 +56,14 @@ ALGORITHMS = [
     ("ANN noiseless", "ann", {"model": "ann_noiseless"}, ("polar",)),
     ("ANN diag", "ann", {"model": "ann_diag"}, ("cartesian",)),
     ("ANN pupil", "ann", {"model": "ann_pupil"}, ("polar", "cartesian")),
+    ("ANN 1k paper prior", "ann", {"model": "paper_prior/ann_1k_paper"}, ("polar",)),
+    ("ANN diag paper prior", "ann", {"model": "paper_prior/ann_diag_paper"}, ("cartesian",)),
 ]
-#: the network the paper's tables use, per detector
+#: the networks the paper's tables use, per detector: the shipped one (profile prior fitted
+#: to the measured sky) and the same recipe with the paper's own prior (independent normal
+#: statistics per Gaussian parameter, models/paper_prior/: reproduction only)
 TABLE_ANN = {"polar": "ANN 1k", "cartesian": "ANN diag"}
+TABLE_ANN_PAPER = {"polar": "ANN 1k paper prior", "cartesian": "ANN diag paper prior"}
 #: Table 3 starts at measured profile 66: profiles 0-65 trained the shipped networks
 #: (their metadata), 66-87 are held out, so the validation run never shows a network a
 #: profile it was trained on.
@@ -286,7 +291,8 @@ def tables_12(sweeps: dict) -> list[dict]:
         algs = sweeps[fig]["algorithms"]
         det = CASES[fig]["detector"]
         cog = algs["CoG"][str(n)]
-        for key, label in (("cog", "CoG"), ("cmf", "CMF"), ("ann", TABLE_ANN[det])):
+        for key, label in (("cog", "CoG"), ("cmf", "CMF"), ("ann", TABLE_ANN[det]),
+                           ("ann", TABLE_ANN_PAPER[det])):
             if label not in algs:
                 continue
             s = algs[label][str(n)]
@@ -304,7 +310,8 @@ def table_3(vals: dict) -> list[dict]:
     for det, v in vals.items():
         algs = v["algorithms"]
         cog = algs.get("CoG")
-        for key, label in (("cog", "CoG"), ("cmf", "CMF"), ("ann", TABLE_ANN[det]), (None, "ANN pupil")):
+        for key, label in (("cog", "CoG"), ("cmf", "CMF"), ("ann", TABLE_ANN[det]),
+                           ("ann", TABLE_ANN_PAPER[det]), (None, "ANN pupil")):
             if label not in algs:
                 continue
             s = algs[label]
@@ -335,12 +342,13 @@ def checks(rows12: list, rows3: list) -> list[dict]:
         out.append({"check": "cases 1-4: ANN / CoG at or below the paper's ratio",
                     "value": "not evaluated: no ANN model could be loaded (see the notes)", "pass": None})
     for det in ("polar", "cartesian"):
-        ann = [r for r in rows3 if r["detector"] == det and r["algorithm"] == TABLE_ANN[det]]
         cog = [r for r in rows3 if r["detector"] == det and r["algorithm"] == "CoG"]
-        if ann and cog:
-            out.append({"check": f"Table 3 {det}: {TABLE_ANN[det]} no worse than CoG",
-                        "value": f"{ann[0]['euclid_mas']:.1f} vs {cog[0]['euclid_mas']:.1f} mas",
-                        "pass": bool(ann[0]["euclid_mas"] <= cog[0]["euclid_mas"])})
+        for label in (TABLE_ANN[det], TABLE_ANN_PAPER[det]):
+            ann = [r for r in rows3 if r["detector"] == det and r["algorithm"] == label]
+            if ann and cog:
+                out.append({"check": f"Table 3 {det}: {label} no worse than CoG",
+                            "value": f"{ann[0]['euclid_mas']:.1f} vs {cog[0]['euclid_mas']:.1f} mas",
+                            "pass": bool(ann[0]["euclid_mas"] <= cog[0]["euclid_mas"])})
     return out
 
 
@@ -562,7 +570,7 @@ def departures(sweeps, vals, rows12, rows3=()) -> list[str]:
     d.append("**ANN.** The networks are the project's (`models/*.onnx`; recipes listed above from their "
              "metadata), not the paper's Matlab networks trained with Levenberg-Marquardt on its own "
              "profile statistics, so the ANN columns test the method, not the same weights.")
-    anns = [r for r in rows12 if r["paper_key"] == "ann"]
+    anns = [r for r in rows12 if r["paper_key"] == "ann" and r["algorithm"] in TABLE_ANN.values()]
     if anns:
         worst = max(anns, key=lambda r: r["ratio_cog_euclid"])
         d.append("**Why our ANN does not reach the paper's ratio on the uncentred profile.** Our "
@@ -576,6 +584,24 @@ def departures(sweeps, vals, rows12, rows3=()) -> list[str]:
                  "uncentred profile was evidently typical of its own training profiles. On the held-out "
                  "measured profiles of Table 3, which the training prior does cover, the networks remove "
                  "most of CoG's bias (Table 3 and the next item).")
+    pp12 = [r for r in rows12 if r["algorithm"] in TABLE_ANN_PAPER.values()]
+    pp3 = [r for r in rows3 if r["algorithm"] in TABLE_ANN_PAPER.values() and r["ratio_cog_euclid"] is not None]
+    if pp12:
+        d.append("**The paper's own profile prior.** The paper drew its training profiles from independent "
+                 "normal distributions of each Gaussian's parameters (its section on the sodium model); "
+                 "that spreads the layer centroid over ~1.2 km while the layer's extent stays put, so a "
+                 "network learns to read the layer's edges rather than its centroid. The same recipes "
+                 "trained with that prior (`models/paper_prior/`, `lgs-wfs train ann_1k_paper`, "
+                 "`ann_diag_paper`) give, in Tables 1-2: "
+                 + "; ".join(f"case {r['case']} {r['ratio_cog_euclid']:.0%} of CoG (paper "
+                             f"{r['paper_ratio_cog']:.1%})" for r in pp12)
+                 + ". They reproduce the paper's gain on its uncentred profile, and they pay for it on "
+                 "the sky: on the held-out measured profiles of Table 3 they reach "
+                 + ("; ".join(f"{r['detector']} {r['ratio_cog_euclid']:.0%} of CoG" for r in pp3) or "-")
+                 + ". No single network here meets both the Tables 1-2 ratios and the Table 3 "
+                 "criterion: which one wins is decided by the altitude prior, not by the method. The "
+                 "shipped networks keep the sky-fitted prior; the paper-prior ones are for this "
+                 "reproduction only.")
     d.append("**Table 3 profiles.** The paper used 'a portion of the measured profiles over a few seconds'; "
              "which portion is unknown. We start at profile 66 of the 88 LZT profiles shipped with the package: "
              "profiles 0-65 are the ones the project's networks were trained on, 66-87 are held out. "

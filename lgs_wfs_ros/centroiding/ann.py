@@ -27,8 +27,9 @@ folded into the graph at load time (:func:`fold_sum_normalisation`): one extra w
 of ones gives each subaperture's total in the same product, and the first layer is divided
 by it, ``(x @ W) / sum(x) = (x / sum(x)) @ W``, which saves two passes over the stack.
 
-Model lookup (:func:`resolve_model`): an existing path; else a name (with or without
-``.onnx``) in the repository's ``models/``, then ``sys.prefix/share/lgs_wfs_ros/models``,
+Model lookup (:func:`resolve_model`): an existing path; else a name or relative path
+(with or without ``.onnx``, e.g. ``ann_1k`` or ``paper_prior/ann_1k_paper``) in the
+repository's ``models/``, then ``sys.prefix/share/lgs_wfs_ros/models``,
 then the directories in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated).
 """
 
@@ -65,8 +66,8 @@ def resolve_model(model: str | os.PathLike) -> Path:
     p = Path(model).expanduser()
     if p.is_file():
         return p
-    names = [p.name] if p.suffix == ".onnx" else [p.name, p.name + ".onnx"]
-    if len(p.parts) == 1:
+    names = [p] if p.suffix == ".onnx" else [p, p.with_name(p.name + ".onnx")]
+    if not p.is_absolute():          # a name, or a path inside a models directory
         for d in model_dirs():
             for name in names:
                 if (d / name).is_file():
