@@ -24,7 +24,7 @@ import numpy as np
 
 from ..sensor import Sensor
 from . import dataset, export, recipes
-from .model import layers_of, mlp, n_parameters
+from .model import layers_of, linears, mlp, n_parameters
 
 CHECK_SEED = 90_001          # seed of the small fixed check set stored in the metadata
 CHECK_N = 2000
@@ -68,14 +68,81 @@ def _mean_error(net, xt, yt) -> float:
     return float(torch.linalg.vector_norm(out - yt, dim=1).mean())
 
 
+def input_jacobian(net, x):
+    """Outputs and input Jacobian of a tanh :func:`.model.mlp` (differentiable in the weights).
+
+    Args: ``net`` (Linear / Tanh ``Sequential``), ``x (B, in)`` torch tensor.
+    Returns: ``(y (B, out), J (B, out, in))`` with ``J[b, k, i] = d y_k / d x_i``.
+    """
+    import torch
+    h, slopes = x, []
+    for m in net:
+        h = m(h)
+        if isinstance(m, torch.nn.Tanh):
+            slopes.append(1.0 - h * h)                     # tanh' at this layer, (B, width)
+    lin = linears(net)
+    jac = lin[-1].weight.unsqueeze(0)                      # (1, out, width)
+    for layer, d in zip(reversed(lin[:-1]), reversed(slopes)):
+        jac = (jac * d.unsqueeze(1)) @ layer.weight        # (B, out, previous width)
+    return h, jac
+
+
+def poisson_penalty(jac, x, photons: float, input_gain: float):
+    """Expected extra squared error of each output under photon noise, first order (Bishop 1995).
+
+    The input is ``x = G c / sum(c)`` with Poisson counts ``c`` of mean ``N p`` (``p`` the
+    noise-free image, ``sum(p) = 1``, ``G = input_gain``, ``N = photons``). To first order
+    ``Cov(x) = (G diag(x) - x x^T) / N`` (the ``- x x^T`` term is the sum normalisation),
+    so output ``k`` gains the variance ``(G sum_i J_ki^2 x_i - (sum_i J_ki x_i)^2) / N``.
+
+    Args: ``jac (B, out, in)`` from :func:`input_jacobian`; ``x (B, in)`` noise-free
+    inputs (with the gain, pixels only: conditioning columns carry no noise).
+    Returns: ``(B, out)`` variances (units of the output squared, px^2).
+    """
+    jp = jac[..., :x.shape[1]]
+    xs = x.unsqueeze(1)
+    return (input_gain * (jp * jp * xs).sum(-1) - (jp * xs).sum(-1) ** 2) / photons
+
+
+EUCLID_EPS_PX2 = 1e-3      # softening of the "euclid" loss at zero error, px^2
+
+
+def _loss(net, xb, yb, loss: str, noise_penalty_photons, pixels, input_gain):
+    """Mini-batch loss: "mse" (mean squared error per output, the paper's) or "euclid"
+    (mean over samples of ``sqrt(|y - t|^2 + EUCLID_EPS_PX2)``, the validation metric's
+    Euclidean error, softened at 0); with ``noise_penalty_photons`` the squared error of
+    each output gets its first-order photon-noise variance (:func:`poisson_penalty`)."""
+    if noise_penalty_photons is None:
+        out, pen = net(xb), 0.0
+    else:
+        out, jac = input_jacobian(net, xb)
+        pen = poisson_penalty(jac, xb[:, :pixels or xb.shape[1]], noise_penalty_photons,
+                              input_gain)
+    se = (out - yb) ** 2 + pen                                 # (B, out) expected, px^2
+    if loss == "mse":
+        return se.mean()
+    return (se.sum(1) + EUCLID_EPS_PX2).sqrt().mean()
+
+
 def fit_adam(net, x, y, xv, yv, *, epochs: int, batch: int, lr: float, seed: int,
              time_budget_s: float | None = None, progress: bool = True,
-             weight_decay: float = 0.0) -> list[dict]:
+             weight_decay: float = 0.0, noise_penalty_photons: float | None = None,
+             pixels: int | None = None, input_gain: float = 1.0,
+             loss: str = "mse") -> list[dict]:
     """Adam, MSE loss, cosine-decayed ``lr``; keeps the best monitor weights.
 
+    With ``noise_penalty_photons = N`` the squared error gets the :func:`poisson_penalty`
+    of the first ``pixels`` inputs at ``N`` photons (so the loss is the expected loss of
+    noisy images at ``N`` photons, to first order), from noise-free ``x`` only.
+    ``loss = "euclid"``: per-sample root of that (expected) squared error instead of the
+    MSE (:func:`_loss`).
+
     Args: torch float32 tensors ``x (N, in)``, ``y (N, 2)``, monitor ``xv``, ``yv``.
-    Returns: history rows ``{"epoch", "train_mse", "monitor_err_px", "seconds"}``.
+    Returns: history rows ``{"epoch", "train_mse", "monitor_err_px", "seconds"}``
+    (``train_mse`` is the training loss, penalty included).
     """
+    if loss not in ("mse", "euclid"):
+        raise ValueError(f"loss must be 'mse' or 'euclid', got {loss!r}")
     import torch
     from tqdm.auto import tqdm
 
@@ -93,12 +160,12 @@ def fit_adam(net, x, y, xv, yv, *, epochs: int, batch: int, lr: float, seed: int
         tot = 0.0
         for a in range(0, x.shape[0], batch):
             idx = perm[a:a + batch]
-            loss = ((net(x[idx]) - y[idx]) ** 2).mean()
+            value = _loss(net, x[idx], y[idx], loss, noise_penalty_photons, pixels, input_gain)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            value.backward()
             opt.step()
             sched.step()
-            tot += float(loss.detach()) * idx.numel()
+            tot += float(value.detach()) * idx.numel()
         err = _mean_error(net, xv, yv)
         if err < best:
             best = err
@@ -200,6 +267,8 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     line = rec.line(samples).replace(f"seed {rec.seed}", f"seed {seed}")
     if opt != rec.optimizer:
         line += f" [optimizer overridden: {opt}]"
+    if opt == "lm" and (rec.noise_penalty_photons is not None or rec.loss != "mse"):
+        line += " [Levenberg-Marquardt: plain MSE, no noise penalty]"
     print("recipe:", line, flush=True)
     torch.set_num_threads(1)
 
@@ -215,7 +284,10 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     if opt == "adam":
         hist = fit_adam(net, x, y, xv, yv, epochs=epochs, batch=rec.batch, lr=rec.lr, seed=seed,
                         time_budget_s=time_budget_s, progress=progress,
-                        weight_decay=rec.weight_decay)
+                        weight_decay=rec.weight_decay,
+                        noise_penalty_photons=rec.noise_penalty_photons,
+                        pixels=recipe_sensor(rec).pixels ** 2, input_gain=input_gain(rec),
+                        loss=rec.loss)
     else:
         hist = fit_lm(net, x, y, xv, yv, samples=min(rec.lm_samples, samples),
                       iterations=3 if quick else rec.lm_iterations,
@@ -234,6 +306,13 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
                 "final_monitor_err_px": min(h["monitor_err_px"] for h in hist),
                 "check": {"seed": CHECK_SEED, "n": CHECK_N, "photons": 1000.0,
                           "sigma_px": dataset.turbulence_sigma_px(Sensor())}}
+    if opt == "adam" and rec.noise_penalty_photons is not None:
+        training["noise_model"] = (
+            f"trained on noise-free images only (training and monitor sets); photon noise "
+            f"enters as its known first-order Poisson variance at {rec.noise_penalty_photons:g} "
+            f"photons, Cov(x) = (G diag(x) - x x^T) / N with G = {input_gain(rec):g}, through the "
+            f"penalty sum_i,j (dy_k/dx_i) Cov_ij (dy_k/dx_j) added to the squared error "
+            f"(Bishop 1995), not as noisy samples; loss {rec.loss}")
     meta = {"lgs_wfs.detector": rec.detector, "lgs_wfs.output_frame": frame,
             "lgs_wfs.conditioning_frame": "pixel", "lgs_wfs.training": training}
     model = export.build_model(layers_of(net), pixels=recipe_sensor(rec).pixels,
