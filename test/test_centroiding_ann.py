@@ -220,3 +220,34 @@ def test_frame_fast_path_equals_stack_path(name, options, dtype):
     x = stack(5).astype(dtype)
     frame = geometry.stack_to_frame(x, LAY)
     np.testing.assert_allclose(c.centroid(frame), c.centroid(x), atol=1e-6)
+
+
+@pytest.mark.parametrize("trans_b", [0, 1])
+def test_gemm_first_layer_is_folded_too(tmp_path, trans_b):
+    """A model whose first layer is a Gemm (weights, bias, beta) folds to the same output."""
+    rng = np.random.default_rng(7)
+    w1 = rng.normal(0, 0.3, (256, 8)).astype(np.float32)
+    b1 = rng.normal(0, 0.1, 8).astype(np.float32)
+    w2 = rng.normal(0, 0.3, (8, 2)).astype(np.float32)
+    nodes = [helper.make_node("Gemm", ["pixels", "W1", "B1"], ["h"], beta=0.5, transB=trans_b),
+             helper.make_node("Tanh", ["h"], ["t"]), helper.make_node("MatMul", ["t", "W2"], ["out"])]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info("pixels", TensorProto.FLOAT, ["N", 256])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, ["N", 2])],
+        [numpy_helper.from_array(w1.T.copy() if trans_b else w1, "W1"), numpy_helper.from_array(b1, "B1"),
+         numpy_helper.from_array(w2, "W2")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in META.items():
+        model.metadata_props.add(key=f"lgs_wfs.{k}", value=json.dumps(v))
+    path = tmp_path / "gemm.onnx"
+    onnx.save(model, str(path))
+    c = make_centroider("ann", SENSOR, model=str(path))
+    assert c.folded is not None
+    x = stack(8)
+    frame = geometry.stack_to_frame(x.astype(np.uint16), LAY)
+    fast, fast_frame = c.centroid(x), c.centroid(frame)
+    c.folded = None
+    plain = c.centroid(x)
+    np.testing.assert_allclose(fast, plain, atol=1e-5)
+    np.testing.assert_allclose(fast_frame, plain, atol=1e-5)

@@ -146,7 +146,8 @@ def fold_sum_normalisation(model, input_name: str, width: int):
         A new ``ModelProto`` taking raw counts on the same input, with an extra output
         ``TOTAL_OUTPUT`` ``(batch, 1)`` (each subaperture's total), or None when the graph
         does not have the foldable pattern (the pixel input used once, by a ``MatMul``
-        with a constant ``(width, h)`` matrix).
+        with a constant ``(width, h)`` matrix, or by a ``Gemm`` with constant weights and
+        bias, ``alpha = 1`` and no ``transA``).
     """
     import onnx
     from onnx import helper, numpy_helper
@@ -156,16 +157,27 @@ def fold_sum_normalisation(model, input_name: str, width: int):
     g = m.graph
     users = [n for n in g.node if input_name in n.input]
     inits = {i.name: i for i in g.initializer}
-    if len(users) != 1 or users[0].op_type != "MatMul" or list(users[0].input).index(input_name) != 0 \
-            or users[0].input[1] not in inits:
+    if len(users) != 1 or users[0].op_type not in ("MatMul", "Gemm") \
+            or list(users[0].input).index(input_name) != 0 or users[0].input[1] not in inits:
         return None
     mm = users[0]
+    attrs = {a.name: helper.get_attribute_value(a) for a in mm.attribute}
+    if attrs.get("transA", 0) or attrs.get("alpha", 1.0) != 1.0:
+        return None
     w = numpy_helper.to_array(inits[mm.input[1]])
+    if attrs.get("transB", 0):
+        w = w.T
+    bias = None
+    if mm.op_type == "Gemm" and len(mm.input) > 2 and mm.input[2]:
+        if mm.input[2] not in inits:
+            return None
+        bias = numpy_helper.to_array(inits[mm.input[2]]) * attrs.get("beta", 1.0)
     if w.ndim != 2 or w.shape[0] != width:
         return None
     h = w.shape[1]
-    if sum(mm.input[1] in n.input for n in g.node) == 1:
-        g.initializer.remove(inits[mm.input[1]])
+    for name in mm.input[1:]:
+        if name in inits and sum(name in n.input for n in g.node) == 1:
+            g.initializer.remove(inits[name])
     pre = "_lgs_wfs_fold_"
     g.initializer.extend([
         numpy_helper.from_array(np.concatenate([w, np.ones((width, 1), w.dtype)], axis=1), pre + "w"),
@@ -178,8 +190,13 @@ def fold_sum_normalisation(model, input_name: str, width: int):
     g.node.remove(mm)
     new = [helper.make_node("MatMul", [input_name, pre + "w"], [pre + "ext"]),
            helper.make_node("Slice", [pre + "ext", pre + "i0", pre + "ih", pre + "axis"], [pre + "num"]),
-           helper.make_node("Slice", [pre + "ext", pre + "ih", pre + "ih1", pre + "axis"], [TOTAL_OUTPUT]),
-           helper.make_node("Div", [pre + "num", TOTAL_OUTPUT], [out])]
+           helper.make_node("Slice", [pre + "ext", pre + "ih", pre + "ih1", pre + "axis"], [TOTAL_OUTPUT])]
+    if bias is None:
+        new.append(helper.make_node("Div", [pre + "num", TOTAL_OUTPUT], [out]))
+    else:                              # a Gemm's bias is added after the normalised product
+        g.initializer.append(numpy_helper.from_array(bias.astype(w.dtype), pre + "bias"))
+        new += [helper.make_node("Div", [pre + "num", TOTAL_OUTPUT], [pre + "div"]),
+                helper.make_node("Add", [pre + "div", pre + "bias"], [out])]
     for j, node in enumerate(new):
         g.node.insert(k + j, node)
     g.output.append(helper.make_tensor_value_info(TOTAL_OUTPUT, onnx.TensorProto.FLOAT, ["batch", 1]))

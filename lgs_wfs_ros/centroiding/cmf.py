@@ -339,7 +339,6 @@ class CMF(Centroider):
             r3 = np.concatenate([r, np.ones((self.n, 1, r.shape[2]))], axis=1)
             q = np.einsum("nkp,np,nlp->nkl", r, var, r)
             self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2))
-            self._padded = None
         return self._model_R
 
     def _stack_products(self, data):
@@ -361,14 +360,15 @@ class CMF(Centroider):
         the reference, so a frame costs one ``(n, 3, pp)`` contraction (slopes and flux)."""
         if self.weighting != "model":
             return super().centroid(data)
-        rows = None if self.ref.source == "history" else self.frame_rows(data)
-        if rows is not None:                    # a frame: every block cast in one pass
+        raw = np.asarray(data)
+        if self.ref.source != "history" and raw.dtype.kind in "ui":
+            # integer counts (a mono16 frame): gather the valid blocks and let the
+            # contraction convert them on the fly, no float copy of the stack (the filter
+            # coefficients, 8.5 MB in float32, are the bulk of the memory traffic)
             self.ref.observe(None, None)
             r, fok, _, r3, r3_32, q, rsum = self._model_filter()
-            if self._padded is None:
-                self._padded = (self.pad_rows(r3), self.pad_rows(r3_32))
-            pad = self._padded[0] if rows.dtype == np.float64 else self._padded[1]
-            m = np.einsum("nkp,np->nk", pad, rows)[self.valid_rows].astype(np.float64)
+            flat = self.as_stack(raw).reshape(self.n, -1)
+            m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
         else:
             m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p
