@@ -18,8 +18,8 @@ def test_chebyshev_basis_matches_numpy():
     for k in range(7):
         ck = np.zeros(k + 1)
         ck[k] = 1
-        np.testing.assert_allclose(t[:, k], np.polynomial.chebyshev.chebval(u, ck), atol=1e-12)
-        np.testing.assert_allclose(d[:, k], np.polynomial.chebyshev.chebval(u, np.polynomial.chebyshev.chebder(ck)), atol=1e-11)
+        np.testing.assert_allclose(t[k], np.polynomial.chebyshev.chebval(u, ck), atol=1e-12)
+        np.testing.assert_allclose(d[k], np.polynomial.chebyshev.chebval(u, np.polynomial.chebyshev.chebder(ck)), atol=1e-11)
 
 
 def test_fit_and_invert_analytic_response():
@@ -28,7 +28,7 @@ def test_fit_and_invert_analytic_response():
     assert rm.fit_error < 1e-10                       # a cubic is inside the basis
     s = np.random.default_rng(0).uniform(-1, 1, (n, 2))
     est, jac = rm.invert(response(s))
-    np.testing.assert_allclose(est, s, atol=1e-8)
+    np.testing.assert_allclose(est, s, atol=1e-5)      # float32 evaluation
     h = 1e-6
     num = np.stack([(response(s + [h, 0]) - response(s - [h, 0])) / (2 * h),
                     (response(s + [0, h]) - response(s - [0, h])) / (2 * h)], axis=2)
