@@ -132,8 +132,12 @@ RECIPES = {
                                  "first-order Poisson penalty at 1000 photons"),
     "ann_diag": Recipe("ann_diag", "cartesian", photons=1000.0, seed=13, **PAPER_PROFILES,
                        note="paper ANN Diag: cartesian, outermost diagonal, 1000 photons"),
+    # ann_pupil: two thirds cartesian samples (a cartesian network must cover every angle
+    # of e, a polar one only e = (1, 0)), 2.4M samples and lr 1e-3: the ring-criterion
+    # measurements behind these choices are in docs/training.md.
     "ann_pupil": Recipe("ann_pupil", "any", pupil=True, sizes=PUPIL_SIZES, conditioning="e_r",
-                        samples=700_000, epochs=36, batch=512, lr=2e-3, seed=14, r_power=1.0,
+                        samples=2_400_000, epochs=36, batch=512, lr=1e-3, seed=14, r_power=1.0,
+                        detectors=("polar", "cartesian", "cartesian"),
                         note="one network for every valid subaperture, polar and cartesian, "
                              "conditioned on (e, r/15); 1000 photons"),
 }
