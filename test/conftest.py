@@ -80,3 +80,18 @@ def wait_for(predicate, timeout=10.0, interval=0.01):
         time.sleep(interval)
         value = predicate()
     return value
+
+
+def set_param(ros, node_name, name, value, timeout=20.0):
+    """Set one parameter of ``node_name`` (e.g. "/wfs/centroider_node") through its
+    parameter service, as `ros2 param set` does; the ``SetParametersResult``."""
+    import time
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    client_node = ros.add(Node(f"param_client_{time.monotonic_ns()}", context=ros.context))
+    client = AsyncParameterClient(client_node, node_name)
+    assert client.wait_for_services(timeout_sec=timeout)
+    future = client.set_parameters([Parameter(name, value=value)])
+    assert wait_for(future.done, timeout=timeout)
+    return future.result().results[0]

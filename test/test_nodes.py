@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import set_param as conftest_set_param
 from conftest import wait_for
 from lgs_wfs_ros import bags
 from lgs_wfs_ros.centroiding import make_centroider
@@ -65,16 +66,7 @@ def centroider(ros):
 
 
 def set_param(ros, name, value):
-    """Set a parameter through the node's parameter service, as `ros2 param set` does."""
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-    from rclpy.parameter_client import AsyncParameterClient
-    client_node = ros.add(Node(f"param_client_{time.monotonic_ns()}", context=ros.context))
-    client = AsyncParameterClient(client_node, "/wfs/centroider_node")
-    assert client.wait_for_services(timeout_sec=10)
-    future = client.set_parameters([Parameter(name, value=value)])
-    assert wait_for(future.done, timeout=10)
-    return future.result().results[0]
+    return conftest_set_param(ros, "/wfs/centroider_node", name, value)
 
 
 def test_slopes_match_the_library(centroider):

@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import set_param as conftest_set_param
 from conftest import wait_for
 from lgs_wfs_ros import bags, cli
 from lgs_wfs_ros.analysis import bagdata, report
@@ -151,16 +152,7 @@ def make_recorder(ros, out, **params):
 
 
 def set_param(ros, name, value):
-    """Through the recorder's parameter service, as `ros2 param set` does."""
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-    from rclpy.parameter_client import AsyncParameterClient
-    node = ros.add(Node(f"param_client_{time.monotonic_ns()}", context=ros.context))
-    client = AsyncParameterClient(node, "/wfs/recorder_node")
-    assert client.wait_for_services(timeout_sec=20)
-    future = client.set_parameters([Parameter(name, value=value)])
-    assert wait_for(future.done, timeout=20)
-    return future.result().results[0]
+    return conftest_set_param(ros, "/wfs/recorder_node", name, value)
 
 
 class FramePublisher:
