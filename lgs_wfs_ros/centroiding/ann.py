@@ -279,12 +279,15 @@ class ANN(Centroider):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(x.shape[0], 2)}")
         return out
 
-    def _run_folded(self, x: np.ndarray, all_blocks: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def _run_folded(self, x: np.ndarray, all_blocks: bool = False, cond=None) -> tuple[np.ndarray, np.ndarray]:
         """(output ``(m, 2)`` float64, totals ``(m,)``) of the folded model on raw counts
-        ``x (m, p*p)``: the valid subapertures, or every block of the grid (``all_blocks``)."""
+        ``x (m, p*p)``: the valid subapertures, every block of the grid (``all_blocks``), or
+        rows whose conditioning ``cond`` is given."""
         feed = {self.input_name: x}
         if self.cond is not None:
-            if all_blocks:
+            if cond is not None:
+                feed[self.cond[0]] = cond
+            elif all_blocks:
                 if "_cond_rows" not in self.__dict__:
                     self._cond_rows = self.pad_rows(self.cond[1])
                 feed[self.cond[0]] = self._cond_rows
@@ -323,6 +326,22 @@ class ANN(Centroider):
             out, total = self._run_stack(raw)
         ok = np.isfinite(total) & (total > 0)
         out = out * self.meta["output_scale"]
+        if self.meta["output_frame"] == "local":
+            out = geometry.local_to_detector(out, self.layout.e)
+        return self.finish(self.to_pixel_axes(out), ok)
+
+    def centroid_many(self, frames) -> np.ndarray:
+        """As :meth:`Centroider.centroid_many`: one network run for all frames."""
+        stacks = self.many_stacks(frames)
+        if stacks is None or not len(stacks) or self.folded is None:
+            return super().centroid_many(frames)
+        k = stacks.shape[0]
+        x = np.ascontiguousarray(stacks.reshape(k * self.n, -1), dtype=np.float32)
+        cond = None if self.cond is None else np.tile(self.cond[1], (k, 1))
+        out, total = self._run_folded(x, cond=cond)
+        out = out.reshape(k, self.n, 2) * self.meta["output_scale"]
+        total = total.reshape(k, self.n)
+        ok = np.isfinite(total) & (total > 0)
         if self.meta["output_frame"] == "local":
             out = geometry.local_to_detector(out, self.layout.e)
         return self.finish(self.to_pixel_axes(out), ok)

@@ -193,6 +193,33 @@ class Centroider:
         stack, total, ok = self.prepare(data)
         return self.finish(self._centroid_pixels(stack, total, ok), ok)
 
+    def centroid_many(self, frames) -> np.ndarray:
+        """Slopes of ``k`` frames in time order, as ``k`` calls of :meth:`centroid`.
+
+        Args:
+            frames: ``(k, G*p, G*p)`` frames or ``(k, n_valid, p, p)`` stacks (or a list).
+
+        Returns:
+            ``(k, n_valid, 2)`` slopes, pixels, detector axes. Stateless algorithms override
+            this with one vectorised call (a node drains several small frames at once);
+            stateful ones (a history reference) see the frames one by one.
+        """
+        out = [self.centroid(f) for f in frames]
+        return np.stack(out) if out else np.empty((0, self.n, 2))
+
+    def many_stacks(self, frames) -> np.ndarray | None:
+        """``(k, n, p, p)`` stacks of ``k`` frames or stacks of this sensor (integer or float,
+        as given), or None when ``frames`` is not that (the caller then falls back to
+        :meth:`centroid` per frame, which raises the usual errors)."""
+        frames = np.asarray(frames)
+        if frames.dtype.kind not in "uif" or frames.ndim < 3:
+            return None
+        if frames.ndim == 3 and frames.shape[1:] == self.sensor.frame_shape:
+            return geometry.frame_to_stack(frames, self.layout)
+        if frames.shape[1:] == (self.n, self.p, self.p):
+            return frames
+        return None
+
     def _centroid_pixels(self, stack, total, ok) -> np.ndarray:
         """``(n, 2)`` slopes in block pixel axes. Bad rows may hold anything."""
         raise NotImplementedError
