@@ -35,7 +35,7 @@ from .. import bags
 from ..bags import subapertures as subaps
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
-from .spinning import DRAIN, run_node, take_queued
+from .spinning import run_node, take_queued
 from . import parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
