@@ -193,13 +193,12 @@ class CentroiderNode(Node):
             return
         with self._lock:
             centroider, layout = self.centroider, self.layout
+            slopes = None
             if len(batch) > 1 and np.prod(self.sensor.frame_shape) <= BATCH_PIXELS:
                 try:
                     slopes = centroider.centroid_many([image for _, image in batch])
                 except Exception:      # find the frame at fault: one call per frame below
                     slopes = None
-            else:
-                slopes = None
             results = []
             for j, (stamp_ns, image) in enumerate(batch):
                 if slopes is not None:
