@@ -9,6 +9,10 @@ localhost domain with the package's Fast DDS profile (64 MB shared-memory segmen
 - one centroider (cog, cmf with model weighting, ann) computes slopes;
 - the recorder writes slopes and truths at full rate (frames not recorded: ``frame_every`` 0).
 
+A fourth graph per case replaces centroider and recorder by ``frame_sink.py``, which only
+takes the raw frames: the rate it receives is the ceiling of rclpy + Fast DDS on this
+machine, before any compute.
+
 Rows per case: frames sent by the player (its achieved rate), slopes out of the centroider
 per second, frames lost before the centroider (sent - received, incl. the gaps it counted),
 slopes lost between centroider and recorder (processed - recorded; the QoS promise is 0).
@@ -139,6 +143,13 @@ def specs(bag: Path, out: Path, alg: str, params: dict, rate: str, profile_out: 
     return [rec, cen, player]
 
 
+class SinkSpec(NodeSpec):
+    """``benchmarks/frame_sink.py``: takes ``/wfs/frame`` raw, counts, nothing else."""
+
+    def command(self, workdir):
+        return [sys.executable, str(Path(__file__).with_name("frame_sink.py"))]
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process (all its threads), s, from /proc."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -194,6 +205,37 @@ def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, s
             "recorded": recorded, "slopes_hz": (len(log_ns) - 1) / span if span > 0 else float("nan"),
             "truths_recorded": counts.get("/wfs/true_slopes", 0),
             "cpu_cores": {k: round(v, 2) for k, v in cpu.items()}}
+
+
+def run_sink(bag: Path, rate: str, seconds: float) -> dict:
+    """Player -> frame_sink only: frames sent and received, CPU of both, over ``seconds``."""
+    player = NodeSpec("player_node", "wfs", {"bag": str(bag), "rate": rate, "loop": True,
+                                             "wait_for": ["/unused/slopes"], "start_delay_s": 3.0})
+    with Graph([SinkSpec("frame_sink", "sink"), player], log_dir=bag.parent / "logs") as g:
+        time.sleep(6.0)                          # start delay, discovery, first frames
+        pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
+        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        cpu = {k: (cpu_seconds(pid) - cpu0[k]) / (time.monotonic() - t0) for k, pid in pids.items()}
+        g.procs[PLAYER].send_signal(signal.SIGINT)
+        g.wait(PLAYER, 10)
+        time.sleep(1.0)
+        g.stop()
+        sent = final_counts(g.log(PLAYER)).get("frame", 0)
+        m = re.findall(r"sink counts (\{.*\})", g.log("sink/frame_sink"))
+        received = json.loads(m[-1])["received"] if m else 0
+    return {"sent": sent, "received": received, "cpu_cores": {k: round(v, 2) for k, v in cpu.items()}}
+
+
+def sink_rows(label: str, r: dict, target_hz: float) -> list[dict]:
+    share = r["received"] / max(r["sent"], 1)
+    cpu = ", ".join(f"{k.split('_')[0]} {v:.2f}" for k, v in r["cpu_cores"].items())
+    return [{"name": f"{label} transport ceiling (raw sink, no compute)",
+             "value": round(100.0 * share, 1), "unit": "% received", "target": "100",
+             "note": f"sent {r['sent']}, received {r['received']}; the most any centroider can "
+                     f"take here: {share * target_hz:.0f} Hz of {target_hz:g}; CPU cores used: "
+                     f"{cpu}; {loadavg()}"}]
 
 
 def pipeline_rows(label: str, r: dict, target_hz: float, rate: str) -> list[dict]:
@@ -325,6 +367,7 @@ def run(quick: bool = False) -> list[dict]:
         for label, sensor, rate, target, distinct, frames in cases:
             rows += stage_rows(sensor, label, tmp, quick)
             bag = make_bag(tmp / f"{label.replace(' ', '_')}.mcap", sensor, distinct, frames)
+            rows += sink_rows(f"{label} @{rate} Hz", run_sink(bag, rate, seconds), float(rate))
             for name, (alg, params) in ALGORITHMS.items():
                 if alg == "ann":
                     params = {"model": ann_model(sensor, tmp)}
