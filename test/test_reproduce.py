@@ -66,6 +66,14 @@ def test_tiny_reproduction(tmp_path):
     cmf = sw["turbulent"]["algorithms"]["CMF"]["1000"]
     assert row["ratio_cog_euclid"] == pytest.approx(cmf["mean_euclid"] / sw["turbulent"]["algorithms"]["CoG"]["1000"]["mean_euclid"])
     assert row["paper_ratio_cog"] == pytest.approx(0.602)
+    # the sensitivity run: Tables 1-2 again on the model-shaped uncentred profile, at the
+    # tables' photon levels only, with CoG biased as much as on the main profile
+    assert {r["case"] for r in data["tables12_sensitivity"]} == {1, 2, 3, 4}
+    assert "other reading of the uncentred profile" in md
+    sens = res["sensitivity"]["turbulent"]
+    assert sens["profile"] == "uncentred_model" and sens["photons"] == [316, 1000]
+    assert 0.4 < sens["algorithms"]["CoG"]["1000"]["mean_euclid"] < 0.7
+    assert any("model-shaped" in c["check"] for c in data["checks"])
 
 
 def test_sample_bag_report(tmp_path, capsys):

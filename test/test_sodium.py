@@ -190,6 +190,24 @@ def test_uncentred_profile_bias(grid, measured):
         assert np.sum(w * delta_px) / np.sum(w) == pytest.approx(bias, abs=1e-4)
 
 
+def test_uncentred_profile_model_shape(grid):
+    """shape="model": the model's mean Gaussians, only the lower three brightened."""
+    rho = na.uncentred_profile(grid, shape="model")
+    assert na.cog_offset_px(grid, rho, r_m=14.75) == pytest.approx(-0.45, abs=1e-6)
+    assert rho.max() == pytest.approx(1.0)
+    mean = na.load_model().mean
+    # the brightening is a common factor on the lower three amplitudes: dividing it out
+    # (least squares against the five mean Gaussians) gives the model's mean profile
+    basis = np.stack([na.gaussian_sum(grid, mean[k:k + 1]) for k in range(5)], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, rho, rcond=None)
+    f = coef[:3] / coef[3]
+    assert f == pytest.approx(np.full(3, f[0]), rel=1e-6)
+    assert f[0] > 1.5                                     # denser in its lower part
+    assert coef[4] / coef[3] == pytest.approx(1.0, rel=1e-6)
+    with pytest.raises(ValueError, match="shape"):
+        na.uncentred_profile(grid, shape="flat")
+
+
 # -- evolving profile ------------------------------------------------------------------------------
 def test_evolving_profile_interpolates(grid):
     rng = np.random.default_rng(2)

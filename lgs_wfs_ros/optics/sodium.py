@@ -688,9 +688,12 @@ def centred_profile(altitude_m, h_ref_m: float = 90e3, centre: str = "density") 
     return gaussian_sum(h, at(s))
 
 
+UNCENTRED_SHAPES = ("measured", "model")
+
+
 def uncentred_profile(altitude_m, h_ref_m: float = 90e3,
                       cog_bias_px: float = PAPER_UNCENTRED_COG_PX, r_m: float = OUTERMOST_R_M,
-                      pixel_scale_arcsec: float = 0.5) -> np.ndarray:
+                      pixel_scale_arcsec: float = 0.5, shape: str = "measured") -> np.ndarray:
     """The paper's "uncentred" case: denser in its lower part (80-90 km), centroid below h_ref.
 
     The shape is fixed (mean density in [h_ref-10, h_ref] km about 1.45 times that in
@@ -700,12 +703,22 @@ def uncentred_profile(altitude_m, h_ref_m: float = 90e3,
     ``-cog_bias_px``). Defaults: the paper's outermost subaperture and its "error stays
     around 0.45 pixels"; the density centroid is then about 0.5 km below h_ref.
 
+    ``shape="model"`` builds the other reading of the paper's description ("a stronger
+    density on its lower part, from 80 to 90 km"): the mean five Gaussians of the random
+    profile model (:func:`load_model`), the lower three made brighter by a common factor
+    (found by root search) until the CoG bias is ``cog_bias_px``; positions and widths stay
+    at the model's means, so the profile is typical of the model's layer positions.
+
     Returns:
         ``(K,)`` densities on ``altitude_m``, peak about 1.
     """
     h = _grid(altitude_m)
     if not (cog_bias_px >= 0 and r_m > 0 and pixel_scale_arcsec > 0):
         raise ValueError("need cog_bias_px >= 0, r_m > 0, pixel_scale_arcsec > 0")
+    if shape not in UNCENTRED_SHAPES:
+        raise ValueError(f"shape must be one of {UNCENTRED_SHAPES}, got {shape!r}")
+    if shape == "model":
+        return _brightened_model_mean(h, h_ref_m, cog_bias_px, r_m, pixel_scale_arcsec)
     base = UNCENTRED_SHAPE.copy()
     base[:, 1] += h_ref_m - 90e3
 
@@ -719,6 +732,29 @@ def uncentred_profile(altitude_m, h_ref_m: float = 90e3,
 
     s = _solve_shift(bias, -cog_bias_px)
     return gaussian_sum(h, at(s))
+
+
+def _brightened_model_mean(h, h_ref_m, cog_bias_px, r_m, pixel_scale_arcsec) -> np.ndarray:
+    """The model's mean five Gaussians (moved by h_ref - 90 km), lower three brightened by f."""
+    from scipy.optimize import brentq
+    base = load_model().mean.copy()
+    base[:, 1] += h_ref_m - 90e3
+
+    def at(f):
+        p = base.copy()
+        p[:3, 0] *= f
+        return gaussian_sum(h, p)
+
+    def bias(f):
+        return cog_offset_px(h, at(f), r_m, h_ref_m, pixel_scale_arcsec) + cog_bias_px
+
+    lo, hi = 1e-3, 1e3
+    if bias(lo) * bias(hi) > 0:
+        raise ValueError(f"no brightening of the model's lower layers gives a CoG bias of "
+                         f"-{cog_bias_px} px at r = {r_m} m")
+    f = brentq(bias, lo, hi, xtol=1e-9)
+    rho = at(f)
+    return rho / rho.max()
 
 
 # ---------------------------------------------------------------------------------------
