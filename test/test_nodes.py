@@ -238,6 +238,50 @@ def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
         np.testing.assert_allclose(geometry.grid_to_slopes(out[stamp], lay), lib.centroid(f), atol=1e-5)
 
 
+def test_player_keeps_at_most_in_flight_frames_unanswered(ros, tmp_path):
+    """rate 'max' with in_flight 3: three frames go out, then the player waits for the
+    first one's answer; each answer lets exactly one more frame out."""
+    import time
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.analysis.bagdata import ContractBagWriter
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    path = tmp_path / "in.mcap"
+    stamps = [1000 + 10 * k for k in range(10)]
+    with ContractBagWriter(path, SMALL) as bag:
+        for k, stamp in enumerate(stamps):
+            bag.frame(stamp, small_frame(SMALL, k))
+    answer = ros.add(Node("answer", context=ros.context))
+    pub = answer.create_publisher(Image, "/fake/slopes", qos.SLOPES)
+    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(path)), Parameter("rate", value="max"),
+        Parameter("wait_for", value=["/fake/slopes"]), Parameter("in_flight", value=3),
+        Parameter("wait_timeout_s", value=30.0), Parameter("start_delay_s", value=0.5)]))
+    assert wait_for(lambda: player.published["frame"] == 3, timeout=10)
+    time.sleep(1.0)
+    assert player.published["frame"] == 3            # waits for the first frame's answer
+
+    def reply(stamp):
+        msg = Image()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        pub.publish(msg)
+
+    assert wait_for(lambda: player.answers or reply(stamps[0]), timeout=10, interval=0.2)
+    assert wait_for(lambda: player.published["frame"] == 4, timeout=10)
+    time.sleep(0.5)
+    assert player.published["frame"] == 4
+    reply(stamps[2])                                  # answers up to the third frame: two more
+    assert wait_for(lambda: player.published["frame"] == 6, timeout=10)
+    time.sleep(0.5)
+    assert player.published["frame"] == 6
+    result = player.set_parameters([Parameter("in_flight", value=0)])[0]
+    assert not result.successful
+    player.stop()
+
+
 def test_player_refuses_a_bad_bag(ros, tmp_path):
     from rclpy.parameter import Parameter
     from lgs_wfs_ros.ros.player_node import PlayerNode

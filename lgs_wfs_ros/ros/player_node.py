@@ -3,12 +3,15 @@
 Messages are published as the raw CDR stored in the bag (no decode), under the node's namespace
 with the last component of their recorded name (``/wfs/frame`` -> ``frame``). Pacing: the
 recorded rate (from the stamps), a fixed rate in Hz, or ``max``: as fast as the consumers keep
-up, i.e. the next frame goes out when every topic in ``wait_for`` has returned the previous
-frame's stamp (or after ``wait_timeout_s``).
+up, i.e. at most ``in_flight`` frames are out unanswered: the next frame goes out when every
+topic in ``wait_for`` has returned the stamp of the frame ``in_flight`` back (or after
+``wait_timeout_s``). ``in_flight`` 1 is lockstep; a few frames in flight keep a slow consumer
+busy without ever overrunning its queue, so nothing is dropped.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import struct
 import threading
@@ -59,6 +62,10 @@ class PlayerNode(Node):
                            "that must answer a frame before the next one is sent.")
         parameters.declare(self, "wait_timeout_s", 1.0, "With rate 'max': longest wait for an "
                            "answer.", low=0.001, high=60.0)
+        parameters.declare(self, "in_flight", 1, "With rate 'max': frames sent but not yet "
+                           "answered on every wait_for topic, at most (1: lockstep). Keep it "
+                           "below the frame topic's queue depth (100) so nothing is dropped.",
+                           low=1, high=64)
         parameters.declare(self, "loop", False, "Start again at the end of the bag.")
         parameters.declare(self, "cache_mb", 512, "With loop: keep a bag up to this size in "
                            "memory after its first pass (0: always read from the file).",
@@ -104,7 +111,7 @@ class PlayerNode(Node):
 
     def _on_answer(self, topic, cdr):
         try:
-            stamp = bags.decode_image(cdr)[0]
+            stamp = bags.peek_stamp(cdr)       # only the header's stamp is needed
         except Exception:
             return
         with self._answer:
@@ -150,6 +157,8 @@ class PlayerNode(Node):
         t0 = time.monotonic()
         first_stamp = None
         sent = 0
+        window = self.get_parameter("in_flight").value
+        pending = collections.deque(maxlen=window)   # stamps of the last frames sent
         skip_sensor = self.published.get("sensor", 0) == 1   # already sent by _publish_first_sensor
         shift = self._pass * self._span_ns if self.get_parameter("restamp_loops").value else 0
         stamps = []
@@ -180,8 +189,9 @@ class PlayerNode(Node):
             self.published[kind] += 1
             if kind == "frame":
                 sent += 1
-                if rate == 0.0 and self.get_parameter("wait_for").value:
-                    self._wait_answers(stamp)
+                pending.append(stamp)
+                if rate == 0.0 and self.get_parameter("wait_for").value and len(pending) == window:
+                    self._wait_answers(pending[0])
         if self._pass == 0 and len(stamps) > 1:   # one period past the last frame
             self._span_ns = (stamps[-1] - stamps[0]) * len(stamps) // (len(stamps) - 1)
 
