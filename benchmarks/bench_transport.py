@@ -9,7 +9,12 @@ localhost domain with the package's Fast DDS profile (64 MB shared-memory segmen
 - one centroider (cog, cmf with model weighting, ann) computes slopes;
 - the recorder writes slopes and truths at full rate (frames not recorded: ``frame_every`` 0).
 
-A fourth graph per case replaces centroider and recorder by ``frame_sink.py``, which only
+Flow-controlled runs: the player at rate ``max`` with a few frames in flight (``in_flight``:
+4 full pupil, 64 single subaperture): the next frame goes out when the centroider has answered
+the one that many frames back, so its queue never overflows; the highest rate with nothing
+lost.
+
+A further graph per case replaces centroider and recorder by ``frame_sink.py``, which only
 takes the raw frames: the rate it receives is the ceiling of rclpy + Fast DDS on this
 machine, before any compute.
 
@@ -125,7 +130,7 @@ class ProfiledSpec(NodeSpec):
 
 
 def specs(bag: Path, out: Path, alg: str, params: dict, rate: str, profile_out: str | None = None,
-          profile_node: str = "centroider_node"):
+          profile_node: str = "centroider_node", in_flight: int = 1):
     rec = NodeSpec("recorder_node", "wfs", {
         "output": str(out), "overwrite": True, "discover": False, "frame_every": 0,
         "compression": "none",
@@ -139,7 +144,7 @@ def specs(bag: Path, out: Path, alg: str, params: dict, rate: str, profile_out: 
         if profile_out and profile_node == "player_node" else NodeSpec
     player = pspec("player_node", "wfs", {"bag": str(bag), "rate": rate, "loop": True,
                                              "wait_for": [f"/{alg}/slopes" if rate == "max" else "/unused/slopes"],
-                                             "start_delay_s": 3.0})
+                                             "start_delay_s": 3.0, "in_flight": in_flight})
     return [rec, cen, player]
 
 
@@ -174,11 +179,13 @@ def final_counts(log: str) -> dict:
 
 
 def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, seconds: float,
-                 profile_out: str | None = None, profile_node: str = "centroider_node") -> dict:
+                 profile_out: str | None = None, profile_node: str = "centroider_node",
+                 in_flight: int = 1) -> dict:
     """Run the graph; stop the player after ``seconds`` of frames, let the rest drain, count."""
     out = bag.parent / f"out_{alg}_{time.monotonic_ns()}.mcap"
     cen_key = f"{alg}/centroider_node"
-    with Graph(specs(bag, out, alg, params, rate, profile_out, profile_node), log_dir=bag.parent / "logs") as g:
+    with Graph(specs(bag, out, alg, params, rate, profile_out, profile_node, in_flight),
+               log_dir=bag.parent / "logs") as g:
         wait_started(g, cen_key)                 # start delay, discovery, first frames
         pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
         cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
@@ -362,9 +369,10 @@ def run(quick: bool = False) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_transport_") as d:
         tmp = Path(d)
-        cases = [("full pupil", full_sensor(800.0), "800", 800.0, 32, 128),
-                 ("single subap", single_sensor(6000.0), "6000", 5000.0, 64, 6000)]
-        for label, sensor, rate, target, distinct, frames in cases:
+        # label, sensor, fixed rate offered, target, distinct frames, bag frames, in_flight
+        cases = [("full pupil", full_sensor(800.0), "800", 800.0, 32, 128, 4),
+                 ("single subap", single_sensor(6000.0), "6000", 5000.0, 64, 6000, 64)]
+        for label, sensor, rate, target, distinct, frames, window in cases:
             rows += stage_rows(sensor, label, tmp, quick)
             bag = make_bag(tmp / f"{label.replace(' ', '_')}.mcap", sensor, distinct, frames)
             rows += sink_rows(f"{label} @{rate} Hz", run_sink(bag, rate, seconds), float(rate))
@@ -373,6 +381,12 @@ def run(quick: bool = False) -> list[dict]:
                     params = {"model": ann_model(sensor, tmp)}
                 r = run_pipeline(bag, sensor, alg, params, rate, seconds)
                 rows += pipeline_rows(f"{label} {name} @{rate} Hz", r, target, rate)
+                # flow control: the player keeps `window` frames in flight (rate 'max'), so
+                # the centroider is never overrun: the highest rate with nothing lost
+                if label == "full pupil" or (name == "cog" and not quick):
+                    r = run_pipeline(bag, sensor, alg, params, "max", seconds, in_flight=window)
+                    rows += pipeline_rows(f"{label} {name} flow-controlled ({window} in flight)",
+                                          r, target, "max")
             if not quick:
                 r = run_pipeline(bag, sensor, "cog", {}, "max", seconds)
                 rows += pipeline_rows(f"{label} cog lockstep", r, target, "max")
