@@ -22,6 +22,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
+from ..sensor import Sensor, SensorError
 from .spinning import run_node
 from . import parameters, qos
 
@@ -64,7 +65,7 @@ class PlayerNode(Node):
                            "answer.", low=0.001, high=60.0)
         parameters.declare(self, "in_flight", 1, "With rate 'max': frames sent but not yet "
                            "answered on every wait_for topic, at most (1: lockstep). Keep it "
-                           "below the frame topic's queue depth (100) so nothing is dropped.",
+                           "below the frame queue depth (at least 100, qos.frame_depth) so nothing is dropped.",
                            low=1, high=64)
         parameters.declare(self, "loop", False, "Start again at the end of the bag.")
         parameters.declare(self, "cache_mb", 512, "With loop: keep a bag up to this size in "
@@ -84,7 +85,9 @@ class PlayerNode(Node):
         if missing:
             raise bags.BagError(f"{path} has no frame topic (topics: {sorted(self.reader.topics())})")
         self.sources = {kinds[k][0]: k for k in REPLAYED if k in kinds}
-        self.pubs = {k: self.create_publisher(MSG_CLASSES[kinds[k][1]], k, qos.for_topic(k))
+        profiles = {k: qos.for_topic(k) for k in REPLAYED}
+        profiles["frame"] = qos.frame_qos(self._bag_sensor())
+        self.pubs = {k: self.create_publisher(MSG_CLASSES[kinds[k][1]], k, profiles[k])
                      for k in REPLAYED if k in kinds}
         self.published = {k: 0 for k in self.pubs}
         self.answers: dict[str, int] = {}
@@ -99,6 +102,17 @@ class PlayerNode(Node):
         self._cache = None         # [(kind, cdr)] of a looped bag that fits in cache_mb
         self._thread = threading.Thread(target=self._play, name="player", daemon=True)
         self._thread.start()
+
+    def _bag_sensor(self):
+        """The bag's first sensor description (sizes the frame queue), None if it has none
+        or it is unusable (the default frame QoS then)."""
+        topics = [t for t, k in self.sources.items() if k == "sensor"]
+        try:
+            for _topic, _type, _log, _pub, cdr in self.reader.messages(topics):
+                return Sensor.from_json(bags.decode_string(cdr))
+        except (bags.BagError, SensorError, ValueError, TypeError):
+            pass
+        return None
 
     def _validate(self, params):
         for p in params:

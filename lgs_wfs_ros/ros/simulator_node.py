@@ -102,7 +102,7 @@ class SimulatorNode(Node):
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
 
-        self._frame_pub = self.create_publisher(Image, "frame", qos.FRAME)
+        self._frame_pub = self.create_publisher(Image, "frame", qos.frame_qos(self.sim.sensor))
         self._truth_pub = self.create_publisher(Image, "true_slopes", qos.SLOPES)
         self._sensor_pub = self.create_publisher(String, "sensor", qos.LATCHED)
         self.published = 0
