@@ -284,25 +284,26 @@ def test_player_keeps_at_most_in_flight_frames_unanswered(ros, tmp_path):
 
 def test_frame_queue_holds_a_fixed_time():
     from lgs_wfs_ros.ros import qos
-    assert qos.frame_depth(700.0, 1_843_264) == 105            # full pupil: 0.15 s
-    assert qos.frame_depth(6000.0, 600) == 900                 # paper's subaperture at 6 kHz
+    assert qos.frame_depth(700.0, 1_843_264) == 100            # full pupil: 0.14 s
+    assert qos.frame_depth(800.0, 1_843_264) == 109            # 192 MiB
+    assert qos.frame_depth(6000.0, 600) == 840                 # paper's subaperture at 6 kHz
     assert qos.frame_depth(100.0, 600) == 100                  # never below 100 frames
     assert qos.frame_depth(1e6, 600) == 2000                   # nor above 2000
     assert qos.frame_depth(700.0, 4 * 1_843_264) == 27         # 192 MiB of payload at most
-    assert qos.frame_qos(Sensor.paper_single("polar", frame_rate_hz=6000.0)).depth == 900
+    assert qos.frame_qos(Sensor.paper_single("polar", frame_rate_hz=6000.0)).depth == 840
     assert qos.frame_qos(None) is qos.FRAME
 
 
 def test_centroider_sizes_its_frame_queue_for_the_sensor(ros):
     """A 6 kHz single-subaperture sensor arriving on the sensor topic re-creates the frame
-    subscription with a 900-frame queue; frames keep flowing through it."""
+    subscription with an 840-frame queue; frames keep flowing through it."""
     from lgs_wfs_ros.ros.centroider_node import CentroiderNode
     fast = Sensor.paper_single("polar", frame_rate_hz=6000.0)
     node = ros.add(CentroiderNode(context=ros.context))
-    assert node._frame_sub.qos_profile.depth == 105             # the default sensor, 700 Hz
+    assert node._frame_sub.qos_profile.depth == 100             # the default sensor, 700 Hz
     rig = Rig(ros, sensor=fast)
     assert wait_for(lambda: node.sensor == fast, timeout=10)
-    assert node._frame_sub.qos_profile.depth == 900
+    assert node._frame_sub.qos_profile.depth == 840
     assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0, timeout=10)
     frame = small_frame(fast, 3)
     assert wait_for(lambda: rig.slopes or rig.send(frame, 10**9), timeout=10, interval=0.2)

@@ -85,7 +85,7 @@ class CentroiderNode(Node):
         self._slopes_pub = self.create_publisher(Image, "slopes", qos.SLOPES)
         self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
         self._frame_sub = None
-        self._subscribe_frames()
+        self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
         self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
                                             self._log_counters)
@@ -168,16 +168,16 @@ class CentroiderNode(Node):
         except (ValueError, OSError, RuntimeError) as exc:
             self.get_logger().error(f"new sensor arrived but the algorithm cannot run on it: {exc}")
             return
+        self._subscribe_frames(sensor)
         with self._lock:
             self.sensor, self.layout, self.centroider = sensor, geometry.layout(sensor), centroider
             self._last_stamp = None
-        self._subscribe_frames()
         self._announce("new sensor")
 
-    def _subscribe_frames(self):
+    def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
-        frame size (``qos.frame_qos``: 0.15 s of frames); kept when the depth is unchanged."""
-        profile = qos.frame_qos(self.sensor)
+        frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
+        profile = qos.frame_qos(sensor)
         if self._frame_sub is not None:
             if self._frame_sub.qos_profile.depth == profile.depth:
                 return

@@ -1,9 +1,9 @@
 """QoS per topic of the contract (docs/conventions.md section 5).
 
 What may drop and what may not:
-- ``frame``: reliable, keep last N, where N holds 0.15 s of frames at the sensor's rate (at
-  least 100, at most 2000 frames and 192 MiB of payload: :func:`frame_depth`; 105 for the
-  full pupil at 700 Hz, 900 for the paper's single subaperture at 6 kHz). A subscriber stalled
+- ``frame``: reliable, keep last N, where N holds 0.14 s of frames at the sensor's rate (at
+  least 100, at most 2000 frames and 192 MiB of payload: :func:`frame_depth`; 100 for the
+  full pupil at 700 Hz, 109 at 800 Hz, 840 for the paper's single subaperture at 6 kHz). A subscriber stalled
   longer than that still loses frames (a reliable KEEP_LAST writer overwrites what the reader
   has not taken); the centroider counts the gaps by stamp. The depth absorbs scheduling
   stalls of a loaded 2-core machine: 10 frames did not at 700 Hz, and a fixed 100 (17 ms) lost
@@ -18,7 +18,7 @@ import math
 
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
-FRAME_QUEUE_S = 0.15             # a frame queue holds this long at the frame rate
+FRAME_QUEUE_S = 0.14             # a frame queue holds this long at the frame rate
 FRAME_DEPTH_MIN, FRAME_DEPTH_MAX = 100, 2000
 FRAME_QUEUE_BYTES = 192 * 2**20  # and at most this much payload (100 full-pupil frames: 184 MB)
 
@@ -38,9 +38,9 @@ TYPES = {"frame": "sensor_msgs/msg/Image", "true_slopes": "sensor_msgs/msg/Image
 
 
 def frame_depth(rate_hz: float, frame_bytes: int) -> int:
-    """Depth of a frame queue: 0.15 s of frames at ``rate_hz``, 100 to 2000 frames, at most
+    """Depth of a frame queue: 0.14 s of frames at ``rate_hz``, 100 to 2000 frames, at most
     192 MiB of ``frame_bytes``-byte messages (never below 10)."""
-    want = min(FRAME_DEPTH_MAX, max(FRAME_DEPTH_MIN, math.ceil(FRAME_QUEUE_S * float(rate_hz))))
+    want = min(FRAME_DEPTH_MAX, max(FRAME_DEPTH_MIN, math.ceil(FRAME_QUEUE_S * float(rate_hz) - 1e-9)))
     return int(max(10, min(want, FRAME_QUEUE_BYTES // max(int(frame_bytes), 1))))
 
 
