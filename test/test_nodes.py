@@ -37,7 +37,7 @@ class Rig:
         from lgs_wfs_ros.ros import qos
 
         self.node = ros.add(Node("rig", namespace="wfs", context=ros.context))
-        self.frame_pub = self.node.create_publisher(Image, "/wfs/frame", qos.FRAME)
+        self.frame_pub = self.node.create_publisher(Image, "/wfs/frame", qos.frame_qos(sensor))
         self.sensor_pub = self.node.create_publisher(String, "/wfs/sensor", qos.LATCHED)
         self.sensor_pub.publish(String(data=sensor.to_json(seed=0)))
         self.slopes, self.descriptions = {}, []
@@ -156,6 +156,30 @@ def test_recorder_writes_a_readable_bag(ros, tmp_path):
     stamps, images = reader.images("/wfs/frame")
     assert list(stamps) == [1000 + k for k in range(6)]
     np.testing.assert_array_equal(images[3], frames[3])
+
+
+def test_recorder_sizes_its_frame_queue_for_the_sensor(ros, tmp_path):
+    """A 6 kHz single-subaperture sensor: the recorder's frame subscription gets the
+    840-frame queue, and a burst of 500 frames sent back to back is recorded whole."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+
+    fast = Sensor.paper_single("polar", frame_rate_hz=6000.0)
+    out = tmp_path / "rec.mcap"
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("frames", value=500),
+        Parameter("linger_s", value=1.0), Parameter("topics", value=["/wfs/frame", "/wfs/sensor"])]))
+    rig = Rig(ros, sensor=fast)
+    assert wait_for(lambda: "/wfs" in rec.sensors, timeout=10)
+    assert rec._subs["/wfs/frame"].qos_profile.depth == 840
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 1, timeout=10)
+    time.sleep(0.5)
+    frame = small_frame(fast, 1)
+    for k in range(500):
+        rig.send(frame, 1000 + k)
+    assert wait_for(lambda: rec.done, timeout=30)
+    stamps, _ = bags.BagReader(out).images("/wfs/frame")
+    assert list(stamps) == [1000 + k for k in range(500)]
 
 
 def test_simulator_publishes_frames_truths_and_sensor(ros):

@@ -185,8 +185,17 @@ class RecorderNode(Node):
                 and self.get_parameter("frames").value == 0:
             return
         profile = qos.for_topic(topic)
+        if kind == "frame":
+            profile = qos.frame_qos(self.sensors.get(_namespace(topic)))
         self.writer.add_topic(topic, type_name, qos=qos.describe(profile))
         self.recorded[topic] = 0
+        self._create_subscription(topic, type_name, profile)
+        self.get_logger().info(f"recording {topic} [{type_name}]")
+        if kind == "frame" and len(self.selection):
+            self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
+
+    def _create_subscription(self, topic: str, type_name: str, profile) -> None:
+        kind = topic.rsplit("/", 1)[-1]
 
         def callback(cdr, info, topic=topic, kind=kind, msg_type=MSG_CLASSES[type_name]):
             self._on_message(topic, kind, cdr, info)
@@ -196,9 +205,20 @@ class RecorderNode(Node):
 
         self._subs[topic] = self.create_subscription(MSG_CLASSES[type_name], topic, callback,
                                                      profile, raw=True)
-        self.get_logger().info(f"recording {topic} [{type_name}]")
-        if kind == "frame" and len(self.selection):
-            self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
+
+    def _resize_frame_queue(self, ns: str, sensor: Sensor) -> None:
+        """Give ``ns``'s frame subscription the queue its sensor needs (``qos.frame_qos``:
+        0.14 s of frames), taking what the old one holds first."""
+        topic = ns + "/frame"
+        old = self._subs.get(topic)
+        profile = qos.frame_qos(sensor)
+        if old is None or old.qos_profile.depth == profile.depth:
+            return
+        for cdr, info in take_queued(old, Image, profile.depth + old.qos_profile.depth):
+            self._on_message(topic, "frame", cdr, info)
+        self.destroy_subscription(old)
+        self._create_subscription(topic, qos.TYPES["frame"], profile)
+        self.get_logger().info(f"{topic}: frame queue resized to {profile.depth} for its sensor")
 
     def _on_message(self, topic, kind, cdr, info):
         if self.closing:
@@ -246,6 +266,7 @@ class RecorderNode(Node):
         ns = _namespace(topic)
         if self.sensors.get(ns) != sensor:
             self.sensors[ns] = sensor
+            self._resize_frame_queue(ns, sensor)
 
     def _cutter(self, topic):
         """``[version, sensor, Cutter | None, reason it is None, selection written]`` for a
