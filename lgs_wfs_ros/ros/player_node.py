@@ -64,9 +64,8 @@ class PlayerNode(Node):
         parameters.declare(self, "wait_timeout_s", 1.0, "With rate 'max': longest wait for an "
                            "answer.", low=0.001, high=60.0)
         parameters.declare(self, "in_flight", 1, "With rate 'max': frames sent but not yet "
-                           "answered on every wait_for topic, at most (1: lockstep). Keep it "
-                           "below the frame queue depth (at least 100, qos.frame_depth) so nothing is dropped.",
-                           low=1, high=64)
+                           "answered on every wait_for topic, at most (1: lockstep). Below the "
+                           "frame queue depth (at least 100) nothing is dropped.", low=1, high=64)
         parameters.declare(self, "loop", False, "Start again at the end of the bag.")
         parameters.declare(self, "cache_mb", 512, "With loop: keep a bag up to this size in "
                            "memory after its first pass (0: always read from the file).",
