@@ -163,7 +163,14 @@ class PlayerNode(Node):
                     break
         except bags.BagError as exc:
             self.get_logger().error(f"stopped: {exc}")
-        self.get_logger().info(f"played {self.published}")
+        except Exception:
+            # SIGINT/SIGTERM shut the context down while this thread was publishing: the
+            # publish fails, which here only means stop (anything else is a real error)
+            if self.context.ok():
+                self.finished.set()
+                raise
+        if self.context.ok():
+            self.get_logger().info(f"played {self.published}")
         self.finished.set()
 
     def _play_once(self):
