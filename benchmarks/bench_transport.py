@@ -178,6 +178,21 @@ def final_counts(log: str) -> dict:
     return json.loads(m[-1]) if m else {}
 
 
+def measure_then_stop(g: Graph, seconds: float, drain_s: float) -> dict:
+    """CPU cores each process of ``g`` uses over the next ``seconds``; then interrupt the
+    player, wait ``drain_s`` for what is in flight, and stop the graph."""
+    pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
+    cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    cpu = {k: (cpu_seconds(pid) - cpu0[k]) / (time.monotonic() - t0) for k, pid in pids.items()}
+    g.procs[PLAYER].send_signal(signal.SIGINT)
+    g.wait(PLAYER, 10)
+    time.sleep(drain_s)
+    g.stop()
+    return cpu
+
+
 def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, seconds: float,
                  profile_out: str | None = None, profile_node: str = "centroider_node",
                  in_flight: int = 1) -> dict:
@@ -187,15 +202,7 @@ def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, s
     with Graph(specs(bag, out, alg, params, rate, profile_out, profile_node, in_flight),
                log_dir=bag.parent / "logs") as g:
         wait_started(g, cen_key)                 # start delay, discovery, first frames
-        pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
-        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
-        t0 = time.monotonic()
-        time.sleep(seconds)
-        cpu = {k: (cpu_seconds(pid) - cpu0[k]) / (time.monotonic() - t0) for k, pid in pids.items()}
-        g.procs[PLAYER].send_signal(signal.SIGINT)
-        g.wait(PLAYER, 10)
-        time.sleep(2.0)                          # drain: last frames through the centroider
-        g.stop()
+        cpu = measure_then_stop(g, seconds, drain_s=2.0)   # drain: last frames through the centroider
         player, cen = final_counts(g.log(PLAYER)), final_counts(g.log(cen_key))
     reader = bags.BagReader(out)
     counts = {t: n for t, (_ty, n) in reader.topics().items()}
@@ -220,15 +227,7 @@ def run_sink(bag: Path, rate: str, seconds: float) -> dict:
                                              "wait_for": ["/unused/slopes"], "start_delay_s": 3.0})
     with Graph([SinkSpec("frame_sink", "sink"), player], log_dir=bag.parent / "logs") as g:
         time.sleep(6.0)                          # start delay, discovery, first frames
-        pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
-        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
-        t0 = time.monotonic()
-        time.sleep(seconds)
-        cpu = {k: (cpu_seconds(pid) - cpu0[k]) / (time.monotonic() - t0) for k, pid in pids.items()}
-        g.procs[PLAYER].send_signal(signal.SIGINT)
-        g.wait(PLAYER, 10)
-        time.sleep(1.0)
-        g.stop()
+        cpu = measure_then_stop(g, seconds, drain_s=1.0)
         sent = final_counts(g.log(PLAYER)).get("frame", 0)
         m = re.findall(r"sink counts (\{.*\})", g.log("sink/frame_sink"))
         received = json.loads(m[-1])["received"] if m else 0
