@@ -240,6 +240,7 @@ def run_sweep(case: str, cfg: Config, log=print, profile: str | None = None,
     cents = build_centroiders(sensor, cfg.notes)
     cov1 = crb_unit(sensor, h, lambda k: rho, truths, cfg.crb_samples)
     levels = tuple(photons or cfg.photons)
+    label = f"{case} ({profile})" if profile else case
     res = {"case": case, **spec, "photons": list(levels), "iterations": t,
            "truth_rms_px": [float(v) for v in truths.std(axis=0)],
            "truth_mean_abs_px": float(np.hypot(truths[:, 0], truths[:, 1]).mean()), "algorithms": {}, "crb": {}}
@@ -252,7 +253,7 @@ def run_sweep(case: str, cfg: Config, log=print, profile: str | None = None,
         res["crb"][str(n)] = {"mean_euclid": float(np.nanmean(mean_abs_norm(cov1 / n))),
                               "mae": float(np.nanmean(np.sqrt(2 / np.pi) *
                                                       np.sqrt(np.einsum("nii->ni", cov1 / n))))}
-        log(f"  {case if not profile else case + ' (' + profile + ')':<10} {n:>6} photons: " + ", ".join(
+        log(f"  {label:<10} {n:>6} photons: " + ", ".join(
             f"{lb} {res['algorithms'][lb][str(n)]['mean_euclid']:.3f}" for lb in est) +
             f", CRB {res['crb'][str(n)]['mean_euclid']:.3f} px  ({time.perf_counter() - t0:.1f} s)")
     return res

@@ -3,9 +3,9 @@
 What may drop and what may not:
 - ``frame``: reliable, keep last N, where N holds 0.14 s of frames at the sensor's rate (at
   least 100, at most 2000 frames and 192 MiB of payload: :func:`frame_depth`; 100 for the
-  full pupil at 700 Hz, 109 at 800 Hz, 840 for the paper's single subaperture at 6 kHz). A subscriber stalled
-  longer than that still loses frames (a reliable KEEP_LAST writer overwrites what the reader
-  has not taken); the centroider counts the gaps by stamp. The depth absorbs scheduling
+  full pupil at 700 Hz, 109 at 800 Hz, 840 for the paper's single subaperture at 6 kHz).
+  A subscriber stalled longer than that still loses frames (a reliable KEEP_LAST writer
+  overwrites what the reader has not taken); the centroider counts the gaps by stamp. The depth absorbs scheduling
   stalls of a loaded 2-core machine: 10 frames did not at 700 Hz, and a fixed 100 (17 ms) lost
   0.3 % of the frames at 6 kHz where 1000 lost none.
 - ``true_slopes`` and ``slopes``: reliable, keep last 1000: small (28.8 kB full pupil), so a
@@ -16,13 +16,14 @@ What may drop and what may not:
 
 import math
 
+import numpy as np
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
 FRAME_QUEUE_S = 0.14             # a frame queue holds this long at the frame rate
 FRAME_DEPTH_MIN, FRAME_DEPTH_MAX = 100, 2000
 FRAME_QUEUE_BYTES = 192 * 2**20  # and at most this much payload (100 full-pupil frames: 184 MB)
 
-FRAME = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+FRAME = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=FRAME_DEPTH_MIN,
                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 SLOPES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -49,8 +50,7 @@ def frame_qos(sensor=None) -> QoSProfile:
     if sensor is None:
         return FRAME
     rows, cols = sensor.frame_shape
-    itemsize = 2 if sensor.dtype == "uint16" else 4
-    depth = frame_depth(sensor.frame_rate_hz, rows * cols * itemsize + 64)
+    depth = frame_depth(sensor.frame_rate_hz, rows * cols * np.dtype(sensor.dtype).itemsize + 64)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
