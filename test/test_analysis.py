@@ -276,7 +276,7 @@ def test_cli_refuses_bad_bags(tmp_path, capsys, verb):
 def test_inspect_flags_wrong_schema(tmp_path):
     files = _bad_files(tmp_path)
     text = inspect_bag(files["wrong_schema"])
-    assert "std_msgs/msg/String" in text and "not a complete lgs_wfs_ros bag" in text
+    assert "std_msgs/msg/String" in text and "not an lgs_wfs_ros contract bag" in text
 
 
 def test_fuzzed_bags_raise_only_clean_errors(tmp_path):

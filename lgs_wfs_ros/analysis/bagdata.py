@@ -224,7 +224,9 @@ def load_bag(path, *, max_frames: int | None = 0, need_truth: bool = True) -> Ba
         topics = reader.topics()
         names = find_topics(topics)
         if need_truth and names["truth"] is None:
-            raise BagError(f"{path}: no true_slopes topic (sensor_msgs/msg/Image); it has: "
+            lacks = "" if names["slopes"] else " and no /<namespace>/slopes topic"
+            raise BagError(f"{path}: not an lgs_wfs_ros contract bag: no /<wfs>/true_slopes topic "
+                           f"(sensor_msgs/msg/Image, 32FC2) to compare with{lacks}; it has: "
                            f"{', '.join(sorted(topics)) or 'no topics'}")
         info, sensor = {}, None
         if names["sensor"] is not None:
