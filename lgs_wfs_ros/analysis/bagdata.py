@@ -279,18 +279,20 @@ class ContractBagWriter:
 
     ``wfs`` is the namespace of frame / true_slopes / sensor. Slopes and truths are given
     per valid subaperture ``(n, 2)`` px and written as ``(G, G, 2)`` 32FC2 grids, NaN where
-    not valid. Use as a context manager.
+    not valid. bag_options: further :class:`~lgs_wfs_ros.bags.BagWriter` arguments
+    (chunk_size, crc, ...). Use as a context manager.
     """
 
     def __init__(self, path, sensor: Sensor, *, overwrite: bool = False, wfs: str = "wfs",
-                 sensor_extra: dict | None = None, log_ns: int | None = None, compression="zstd"):
+                 sensor_extra: dict | None = None, log_ns: int | None = None, compression="zstd",
+                 **bag_options):
         from ..bags import BagWriter, encode_string
         from ..optics import geometry
 
         self.sensor = sensor
         self.layout = geometry.layout(sensor)
         self.wfs = wfs.strip("/")
-        self.w = BagWriter(path, overwrite=overwrite, compression=compression)
+        self.w = BagWriter(path, overwrite=overwrite, compression=compression, **bag_options)
         self._enc_string = encode_string
         self._topics = set()
         self._cutter = None        # subaperture cutter of the current selection

@@ -7,7 +7,7 @@ import argparse
 import json
 import sys
 
-from . import BagError, BagReader, recover
+from . import BagError, BagReader, recover_command
 
 
 def main(argv=None):
@@ -26,9 +26,7 @@ def main(argv=None):
             with BagReader(args.bag, strict=not args.lenient) as r:
                 print(json.dumps(r.summary(), indent=2))
             return 0
-        stats = recover(args.src, args.dst, overwrite=args.overwrite)
-        print(json.dumps(stats, indent=2))
-        return 1 if stats["problems"] else 0
+        return recover_command(args.src, args.dst, overwrite=args.overwrite)
     except BagError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

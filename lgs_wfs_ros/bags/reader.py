@@ -12,7 +12,8 @@ corrupt (CRC mismatch, undecodable chunk, malformed record), unknown topic, wron
 missing or the summary is corrupt, while reading at the first corrupt chunk. With
 ``strict=False`` a reader returns everything readable: all complete chunks up to a
 truncation, skipping corrupt chunks whose length is intact; ``problems`` lists what was
-skipped. :func:`recover` uses that to copy a damaged bag into a complete one.
+skipped. :func:`lgs_wfs_ros.bags.recovery.recover` uses that to copy a damaged bag into a
+complete one.
 """
 
 import io
@@ -72,6 +73,7 @@ _PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, Overfl
 
 
 _MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, publish time
+_MAX_TIME = 2**63 - 1                      # times are handed out as int64 ns
 
 
 def _message(body):
@@ -80,6 +82,8 @@ def _message(body):
     if len(body) < _MESSAGE_HEAD.size:
         raise _Corrupt(f"Message record of {len(body)} bytes is shorter than its header")
     cid, seq, log, pub = _MESSAGE_HEAD.unpack_from(body)
+    if log > _MAX_TIME or pub > _MAX_TIME:
+        raise _Corrupt(f"Message time {max(log, pub)} ns is past 2262 (int64 ns): not a real time")
     return ("message", cid, seq, log, pub, memoryview(body)[_MESSAGE_HEAD.size:])
 
 
@@ -390,9 +394,9 @@ class BagReader:
         for item in self._records(want_ids):
             kind = item[0]
             if kind == "schema":
-                schemas[item[1]] = item[2]
+                self._define(schemas, "Schema", item[1], item[2])
             elif kind == "channel":
-                channels[item[1]] = (item[3], item[2])
+                self._define(channels, "Channel", item[1], (item[3], item[2]))
             elif kind == "message":
                 ch = channels.get(item[1])
                 if ch is None:
@@ -401,6 +405,15 @@ class BagReader:
                     continue
                 if topics is None or ch[0] in topics:
                     yield ch[0], schemas.get(ch[1], ""), item[3], item[4], item[5]
+
+    def _define(self, known, what, rid, value):
+        """Record a Schema/Channel definition; the spec repeats them identically, so another
+        definition of a known id is corruption (the first one, e.g. the summary's, is kept)."""
+        if rid in known and known[rid] != value:
+            self._problem(f"{what} id {rid} defined twice differently ({known[rid]} and {value}): "
+                          "corrupt file")
+            return
+        known[rid] = value
 
     def _scan(self):
         if getattr(self, "_scanned", None) is None:
@@ -412,9 +425,9 @@ class BagReader:
             first, last = {}, {}
             for item in self._records():
                 if item[0] == "schema":
-                    schemas[item[1]] = item[2]
+                    self._define(schemas, "Schema", item[1], item[2])
                 elif item[0] == "channel":
-                    channels[item[1]] = (item[3], item[2])
+                    self._define(channels, "Channel", item[1], (item[3], item[2]))
                 elif item[0] == "message":
                     cid, log = item[1], item[3]
                     counts[cid] = counts.get(cid, 0) + 1
@@ -588,54 +601,3 @@ class BagReader:
     def __exit__(self, *exc):
         self.close()
         return False
-
-
-def recover(src, dst, *, overwrite=False, compression="zstd"):
-    """Copy every readable message of a (possibly truncated or damaged) bag into a new,
-    complete bag. Returns {"messages": n, "topics": {topic: n}, "problems": [...],
-    "source_complete": bool}. This is the recovery command (``lgs-wfs recover SRC DST``)."""
-    from .writer import BagWriter
-    if Path(dst).exists() and Path(src).exists() and os.path.samefile(src, dst):
-        raise BagError(f"{dst}: recovery must write a new file, not the damaged source")
-    reader = BagReader(src, strict=False)
-    counts = {}
-    try:
-        schemas, channels = {}, {}
-        with BagWriter(dst, overwrite=overwrite, compression=compression) as w:
-            for item in reader._records():
-                if item[0] == "schema":
-                    schemas[item[1]] = item[2]
-                elif item[0] == "channel":
-                    cid, sid, topic, _, meta = item[1:]
-                    channels[cid] = topic
-                    if topic not in w.topics:
-                        qos = _qos_from_yaml(meta.get("offered_qos_profiles", ""))
-                        try:
-                            try:
-                                w.add_topic(topic, schemas.get(sid, ""), qos=qos)
-                            except ValueError:
-                                w.add_topic(topic, schemas.get(sid, ""))
-                        except ValueError as err:
-                            reader.problems.append(f"topic {topic} skipped: {err}")
-                elif item[0] == "message":
-                    topic = channels.get(item[1])
-                    if topic is None or topic not in w.topics:
-                        continue
-                    w.write(topic, item[5], item[3], item[4], sequence=item[2])
-                    counts[topic] = counts.get(topic, 0) + 1
-    finally:
-        reader.close()
-    return {"messages": sum(counts.values()), "topics": counts, "problems": list(reader.problems),
-            "source_complete": reader.complete}
-
-
-def _qos_from_yaml(text):
-    """Parse offered_qos_profiles back into dicts (None when absent or unreadable)."""
-    try:
-        import yaml
-        data = yaml.safe_load(text) if text else None
-        if isinstance(data, list) and data and all(isinstance(d, dict) for d in data):
-            return data
-    except Exception:
-        pass
-    return None
