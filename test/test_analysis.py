@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lgs_wfs_ros import cli
-from lgs_wfs_ros.analysis import bagdata, report
+from lgs_wfs_ros.analysis import bagload, bagwrite, report
 from lgs_wfs_ros.analysis.inspect import bag_info, inspect_bag
 from lgs_wfs_ros.analysis.replay import replay_bag
 from lgs_wfs_ros.bags import BagError, BagReader, BagWriter, encode_string
@@ -34,7 +34,7 @@ def small_pupil():
 def write_bag(path, sensor, truths, slopes, *, frames=None, truth_stamps=None, changes=None):
     """truths (F, n, 2); slopes {ns: (stamps, (K, n, 2))}; frames (F, H, W) or None."""
     stamps = T0 + DT * np.arange(len(truths)) if truth_stamps is None else truth_stamps
-    with bagdata.ContractBagWriter(path, sensor, sensor_extra={"profile": "test"}, log_ns=T0) as w:
+    with bagwrite.ContractBagWriter(path, sensor, sensor_extra={"profile": "test"}, log_ns=T0) as w:
         for ns, desc in (changes or {}).items():
             for log, d in desc:
                 w.centroider(ns, d, log)
@@ -58,7 +58,7 @@ def test_known_errors_two_algorithms(tmp_path):
     b = truths + sign * np.array([0.1, 0.0])              # +-0.1 px in x: mean 0.1, bias 0
     path = write_bag(tmp_path / "k.mcap", single(), truths, {"cog": (stamps, a), "cmf": (stamps, b)},
                      changes={"cog": [(T0, {"algorithm": "cog"})], "cmf": [(T0, {"algorithm": "cmf"})]})
-    res = report.analyse(bagdata.load_bag(path), crb=False)
+    res = report.analyse(bagload.load_bag(path), crb=False)
     cog, cmf = res["algorithms"]["cog"], res["algorithms"]["cmf"]
     assert cog["mean_euclid"] == pytest.approx(0.5, abs=1e-6)
     assert cog["mae"] == pytest.approx(0.35, abs=1e-6)
@@ -79,7 +79,7 @@ def test_join_missing_and_duplicate_stamps(tmp_path):
     sl = np.full((len(st), 1, 2), [0.2, 0.0])
     sl[5] = [9.0, 0.0]
     path = write_bag(tmp_path / "j.mcap", single(), truths, {"cog": (st, sl)})
-    s = report.analyse(bagdata.load_bag(path), crb=False)["algorithms"]["cog"]
+    s = report.analyse(bagload.load_bag(path), crb=False)["algorithms"]["cog"]
     assert s["join"] == {"slopes": 11, "joined": 9, "truth_without_slopes": 1, "slopes_without_truth": 1,
                          "duplicate_slope_stamps": 1, "duplicate_truth_stamps": 0}
     assert s["n"] == 9
@@ -91,7 +91,7 @@ def test_nan_slopes_are_counted_not_averaged(tmp_path):
     st = T0 + DT * np.arange(4)
     sl = np.array([[[0.1, 0]], [[np.nan, np.nan]], [[0.3, 0]], [[0.2, 0]]])
     path = write_bag(tmp_path / "n.mcap", single(), truths, {"cog": (st, sl)})
-    s = report.analyse(bagdata.load_bag(path), crb=False)["algorithms"]["cog"]
+    s = report.analyse(bagload.load_bag(path), crb=False)["algorithms"]["cog"]
     assert s["n"] == 3 and s["n_nan"] == 1
     assert s["mean_euclid"] == pytest.approx(0.2, abs=1e-6)
 
@@ -103,7 +103,7 @@ def test_centroider_switch_splits_segments(tmp_path):
     changes = {"wfs": [(T0, {"algorithm": "cog"}), (T0 + 1, {"algorithm": "cog"}),   # republished
                        (int(st[8]), {"algorithm": "cmf", "options": {"history": 5}})]}
     path = write_bag(tmp_path / "s.mcap", single(), truths, {"wfs": (st, sl)}, changes=changes)
-    res = report.analyse(bagdata.load_bag(path), crb=False)
+    res = report.analyse(bagload.load_bag(path), crb=False)
     assert list(res["algorithms"]) == ["wfs:cog", "wfs:cmf"]
     assert res["algorithms"]["wfs:cog"]["n"] == 8
     assert res["algorithms"]["wfs:cog"]["mean_euclid"] == pytest.approx(0.5, abs=1e-6)
@@ -119,7 +119,7 @@ def test_full_pupil_by_radius(tmp_path):
     err = np.stack([lay.r_m / 10, np.zeros(lay.n_valid)], axis=1)       # error grows with r
     st = T0 + DT * np.arange(3)
     path = write_bag(tmp_path / "p.mcap", sensor, truths, {"cog": (st, truths + err)})
-    res = report.analyse(bagdata.load_bag(path), crb=False)
+    res = report.analyse(bagload.load_bag(path), crb=False)
     rings = res["algorithms"]["cog"]["by_radius"]
     assert len(rings) >= 2
     for ring in rings:
@@ -151,7 +151,7 @@ def test_report_crb_matches_model_crb(tmp_path):
     path = write_bag(tmp_path / "c.mcap", sensor, truths, {"cog": (T0 + DT * np.arange(f), est)},
                      frames=imgs)
     model = lambda s: spots(s, photons=photons, sigma=SIGMA)               # noqa: E731
-    data = bagdata.load_bag(path)
+    data = bagload.load_bag(path)
     res = report.analyse(data, image_model=(lambda k, s: model(s), truths[:10], "test model"))
     exact = crb_of(model, 1)[0]                                       # (sx, sy) px at 0
     assert res["crb"]["sigma_x"] == pytest.approx(exact[0], rel=0.1)
@@ -212,7 +212,7 @@ def test_replay_adds_slopes_that_match_the_library(tmp_path, capsys):
     out = tmp_path / "out.mcap"
     res = replay_bag(path, ["cog", "cmf"], out=out)
     assert res["frames"] == 30 and res["skipped"] == 0
-    data = bagdata.load_bag(out)
+    data = bagload.load_bag(out)
     segs = {s.label: s for s in data.segments}
     assert set(segs) == {"cog", "cmf"}
     direct = np.stack([make_centroider("cog", single()).centroid(im) for im in imgs])
@@ -287,7 +287,7 @@ def test_replay_skips_bad_frames_and_keeps_going(tmp_path):
     truths = rng.normal(0, 0.3, size=(6, 1, 2))
     imgs = spots(truths[:, 0], photons=1000, sigma=SIGMA, rng=rng).astype(np.float32)
     path = tmp_path / "bad_frames.mcap"
-    with bagdata.ContractBagWriter(path, sensor, log_ns=T0) as w:
+    with bagwrite.ContractBagWriter(path, sensor, log_ns=T0) as w:
         for k in range(6):
             s = T0 + DT * k
             frame = imgs[k]
@@ -299,7 +299,7 @@ def test_replay_skips_bad_frames_and_keeps_going(tmp_path):
             w.truth(s, truths[k])
     res = replay_bag(path, ["cog"], out=tmp_path / "o.mcap", quiet=True)
     assert res["frames"] == 5 and res["skipped"] == 1
-    seg = bagdata.load_bag(tmp_path / "o.mcap").segments[0]
+    seg = bagload.load_bag(tmp_path / "o.mcap").segments[0]
     assert len(seg.slopes) == 5
     nan_rows = ~np.isfinite(seg.slopes.data[:, 0]).all(axis=1)
     assert nan_rows.tolist() == [False, False, False, True, False]

@@ -21,7 +21,7 @@ import struct
 import numpy as np
 import pytest
 
-from lgs_wfs_ros.analysis import bagdata, report
+from lgs_wfs_ros.analysis import bagload, bagwrite, report
 from lgs_wfs_ros.bags import BagError, BagReader
 from lgs_wfs_ros.sensor import Sensor
 
@@ -34,7 +34,7 @@ CASE_SECONDS = 10
 def _contract(path, *, compression=None, crc=True, chunk_size=1500, frames=8):
     sensor = Sensor.paper_single("polar", dtype="float32")
     rng = np.random.default_rng(3)
-    with bagdata.ContractBagWriter(path, sensor, log_ns=T0, compression=compression, crc=crc,
+    with bagwrite.ContractBagWriter(path, sensor, log_ns=T0, compression=compression, crc=crc,
                                    chunk_size=chunk_size) as w:
         w.centroider("cog", {"algorithm": "cog", "options": {}}, T0)
         for k in range(frames):
@@ -213,7 +213,7 @@ def exercise(path, orig, crc, outcome):
         outcome["lenient BagError"] += 1
         outcome[_cause(err, path)] += 1
     try:
-        data = bagdata.load_bag(path, max_frames=None)
+        data = bagload.load_bag(path, max_frames=None)
     except BagError:
         outcome["load BagError"] += 1
         return

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lgs_wfs_ros import cli
-from lgs_wfs_ros.analysis import bagdata, report
+from lgs_wfs_ros.analysis import bagload, bagwrite, report
 from lgs_wfs_ros.analysis.inspect import bag_info
 from lgs_wfs_ros.bags import BagError, BagReader
 from lgs_wfs_ros.sensor import Sensor
@@ -34,7 +34,7 @@ def contract_bag(tmp_path_factory):
     rng = np.random.default_rng(5)
     n = 40
     truths = rng.normal(0, 0.3, size=(n, 1, 2))
-    with bagdata.ContractBagWriter(path, sensor, log_ns=T0, compression=None) as w:
+    with bagwrite.ContractBagWriter(path, sensor, log_ns=T0, compression=None) as w:
         w.centroider("cog", {"algorithm": "cog", "options": {}}, T0)
         w.centroider("cmf", {"algorithm": "cmf", "options": {}}, T0)
         for k in range(n):
@@ -49,7 +49,7 @@ def contract_bag(tmp_path_factory):
 
 
 def _numbers(path):
-    res = report.analyse(bagdata.load_bag(path), crb=False)
+    res = report.analyse(bagload.load_bag(path), crb=False)
     return {name: (v["n"], round(v["mean_euclid"], 12), round(v["rms"], 12), v["join"]["joined"])
             for name, v in res["algorithms"].items()}
 
@@ -256,4 +256,4 @@ def test_rosbag2_fixture_inspect_and_report(path, capsys, tmp_path):
     line, = err.strip().splitlines()
     assert "true_slopes" in line and "slopes" in line and "it has:" in line
     with pytest.raises(BagError, match="true_slopes"):
-        bagdata.load_bag(path)
+        bagload.load_bag(path)

@@ -10,7 +10,7 @@ import json
 
 from ..bags import BagReader
 from ..bags import subapertures as subaps
-from .bagdata import STRING, find_topics, read_json_topic, sensor_from_info
+from .bagload import STRING, find_topics, read_json_topic, sensor_from_info
 
 
 def bag_info(path) -> dict:

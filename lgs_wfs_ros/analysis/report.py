@@ -1,6 +1,6 @@
 """``lgs-wfs report BAG``: per-algorithm errors, CRB, error by radius and over time, plots, JSON.
 
-For every centroider segment of a bag (see :mod:`.bagdata`) the slopes are joined to the
+For every centroider segment of a bag (see :mod:`.bagload`) the slopes are joined to the
 truths by header stamp and summarised with :func:`.metrics.summarize` (mean Euclidean
 error, per-axis mean absolute error, RMS, bias; px and mas). The Cramer-Rao bound needs the
 noise-free image model of the same frames: for a bag written by our simulator it is rebuilt
@@ -26,7 +26,7 @@ from scipy.special import ellipe
 
 from ..optics import geometry
 from . import metrics
-from .bagdata import BagData, joined, load_bag
+from .bagload import BagData, joined, load_bag
 
 CRB_SAMPLES = 16
 
@@ -88,7 +88,7 @@ def crb_covariances(sensor, image_at, truths: np.ndarray) -> np.ndarray:
 def simulator_model(data: BagData):
     """``(image_at, truths (K, n, 2), note)`` rebuilt from the simulator settings in the
     sensor description (keys ``simulation`` and ``start_stamp_ns``, as written by
-    :func:`.bagdata.make_sample_bag`), or None when the bag does not carry them."""
+    :func:`.bagwrite.make_sample_bag`), or None when the bag does not carry them."""
     info = data.sensor_info or {}
     if data.sensor is None or data.truth is None or not len(data.truth) or "simulation" not in info:
         return None
