@@ -10,6 +10,7 @@ import numpy as np
 
 from ..bags import BagWriter, encode_image, encode_string
 from ..bags import subapertures as subaps
+from ..bags.portable import portable
 from ..bags.reader import IMAGE, STRING
 from ..sensor import Sensor
 
@@ -22,8 +23,10 @@ class ContractBagWriter:
 
     ``wfs`` is the namespace of frame / true_slopes / sensor. Slopes and truths are given
     per valid subaperture ``(n, 2)`` px and written as ``(G, G, 2)`` 32FC2 grids, NaN where
-    not valid. bag_options: further :class:`~lgs_wfs_ros.bags.BagWriter` arguments
-    (chunk_size, crc, ...). Use as a context manager.
+    not valid. Descriptions are stored with names, not paths
+    (:func:`~lgs_wfs_ros.bags.portable.portable`). bag_options: further
+    :class:`~lgs_wfs_ros.bags.BagWriter` arguments (chunk_size, crc, ...). Use as a context
+    manager.
     """
 
     def __init__(self, path, sensor: Sensor, *, overwrite: bool = False, wfs: str = "wfs",
@@ -38,7 +41,7 @@ class ContractBagWriter:
         self._topics = set()
         self._cutter = None        # subaperture cutter of the current selection
         self.topic(f"/{self.wfs}/sensor", STRING, TRANSIENT)
-        self.w.write(f"/{self.wfs}/sensor", encode_string(sensor.to_json(**(sensor_extra or {}))),
+        self.w.write(f"/{self.wfs}/sensor", encode_string(sensor.to_json(**portable(sensor_extra or {}))),
                      int(log_ns or 0))
 
     def topic(self, name: str, type_name: str, qos=None) -> None:
@@ -78,7 +81,8 @@ class ContractBagWriter:
     def centroider(self, ns: str, description: dict, log_ns: int) -> None:
         t = f"/{ns.strip('/')}/centroider"
         self.topic(t, STRING, TRANSIENT)
-        self.w.write(t, encode_string(json.dumps(description, sort_keys=True, default=str)), int(log_ns))
+        text = json.dumps(portable(description), sort_keys=True, default=str)
+        self.w.write(t, encode_string(text), int(log_ns))
 
     def close(self) -> None:
         self.w.close()

@@ -21,16 +21,20 @@ def recover_command(src, dst, *, overwrite=False, out=None) -> int:
     return 1 if stats["problems"] else 0
 
 
-def recover(src, dst, *, overwrite=False, compression="zstd"):
+def recover(src, dst, *, overwrite=False, compression="zstd", transform=None):
     """Copy every readable message of a (possibly truncated or damaged) bag into a new,
     complete bag. Returns {"messages": n, "topics": {topic: n}, "problems": [...],
-    "source_complete": bool}. This is the recovery command (``lgs-wfs recover SRC DST``)."""
+    "source_complete": bool}. This is the recovery command (``lgs-wfs recover SRC DST``).
+
+    transform: ``f(type_name, cdr) -> cdr`` applied to every message on the way (e.g.
+    :func:`lgs_wfs_ros.bags.portable.portable_cdr`); default: copied as they are."""
     if Path(dst).exists() and Path(src).exists() and os.path.samefile(src, dst):
         raise BagError(f"{dst}: recovery must write a new file, not the damaged source")
     reader = BagReader(src, strict=False)
     counts = {}
     try:
         schemas, channels = {}, {}
+        types = {}                  # topic -> type name
         with BagWriter(dst, overwrite=overwrite, compression=compression) as w:
             for item in reader._records():
                 if item[0] == "schema":
@@ -38,6 +42,7 @@ def recover(src, dst, *, overwrite=False, compression="zstd"):
                 elif item[0] == "channel":
                     cid, sid, topic, _, meta = item[1:]
                     channels[cid] = topic
+                    types[topic] = schemas.get(sid, "")
                     if topic not in w.topics:
                         qos = _qos_from_yaml(meta.get("offered_qos_profiles", ""))
                         try:
@@ -51,7 +56,8 @@ def recover(src, dst, *, overwrite=False, compression="zstd"):
                     topic = channels.get(item[1])
                     if topic is None or topic not in w.topics:
                         continue
-                    w.write(topic, item[5], item[3], item[4], sequence=item[2])
+                    data = item[5] if transform is None else transform(types[topic], item[5])
+                    w.write(topic, data, item[3], item[4], sequence=item[2])
                     counts[topic] = counts.get(topic, 0) + 1
     finally:
         reader.close()
