@@ -96,6 +96,62 @@ def test_nan_slopes_are_counted_not_averaged(tmp_path):
     assert s["mean_euclid"] == pytest.approx(0.2, abs=1e-6)
 
 
+def test_ratios_are_taken_on_the_same_frames(tmp_path):
+    """cog measures every frame, cmf only the second half, where every error is 4x larger:
+    over the frames both measured cmf equals cog (ratio 1), over all frames it would not."""
+    n = 40
+    truths = np.zeros((n, 1, 2))
+    st = T0 + DT * np.arange(n)
+    scale = np.where(np.arange(n) < n // 2, 0.05, 0.2)[:, None, None]
+    est = truths + scale * np.array([1.0, 0.0])
+    path = write_bag(tmp_path / "r.mcap", single(), truths, {"cog": (st, est), "cmf": (st[n // 2:], est[n // 2:])},
+                     changes={"cog": [(T0, {"algorithm": "cog"})], "cmf": [(T0, {"algorithm": "cmf"})]})
+    data = bagload.load_bag(path)
+    res = report.analyse(data, crb=False)
+    cmf = res["algorithms"]["cmf"]
+    assert cmf["mean_euclid"] / res["algorithms"]["cog"]["mean_euclid"] == pytest.approx(1.6)
+    assert cmf["ratio_to_cog"] == pytest.approx(1.0) and cmf["mae_ratio_to_cog"] == pytest.approx(1.0)
+    assert cmf["ratio_to_cog_basis"] == f"{n // 2} frames measured by both"
+    # CRB known at frames 0, 10, 20, 30 (expected |err| 0.1 px each): cmf has 20 and 30 only
+    cst = st[::10]
+    model = (lambda k, s: None, truths[::10], "fake", cst)
+    fake = np.broadcast_to(np.eye(2) * 0.01, (4, 2, 2)).copy()      # sigma 0.1 px per axis
+    orig = report.crb_covariances
+    report.crb_covariances = lambda sensor, image_at, t: fake
+    try:
+        res = report.analyse(data, image_model=model)
+    finally:
+        report.crb_covariances = orig
+    d = float(report.mean_abs_norm(fake[0]))
+    assert res["algorithms"]["cmf"]["ratio_to_crb"] == pytest.approx(0.2 / d)
+    assert res["algorithms"]["cog"]["ratio_to_crb"] == pytest.approx((0.05 * 2 + 0.2 * 2) / 4 / d)
+    assert res["algorithms"]["cmf"]["ratio_to_crb_basis"] == "2 frames"
+    assert "x CRB on 2 frames" in report.format_report(res)
+
+
+def test_binned_time_series_decimates_without_bias():
+    """2,100 frames become at most TIME_BINS bins whose medians and bands follow the data."""
+    t = np.linspace(0, 3, 2100)
+    y = np.where(t < 1.5, 1.0, 3.0) + np.random.default_rng(0).normal(0, 0.1, t.size)
+    y[5] = np.nan
+    c, med, lo, hi = report.binned(t, y)
+    assert len(c) <= report.TIME_BINS and len(c) >= report.TIME_BINS - 1
+    tol = 5 * 1.2533 * 0.1 / math.sqrt(2100 / report.TIME_BINS)    # 5 sigma of a bin's median
+    np.testing.assert_allclose(med[c < 1.4], 1.0, atol=tol)
+    np.testing.assert_allclose(med[c > 1.6], 3.0, atol=tol)
+    assert np.all(lo <= med) and np.all(med <= hi)
+    np.testing.assert_allclose(np.median(hi[c > 1.6] - lo[c > 1.6]), 0.2, rtol=0.2)   # +-1 sigma
+    c, med, lo, hi = report.binned(t[:50], y[:50])
+    assert len(c) == 49 and np.array_equal(med, lo)                  # few points: drawn as they are
+
+
+def test_crb_frame_count_scales_with_subapertures():
+    assert report.crb_frame_count(2100, 1) == 256
+    assert report.crb_frame_count(30, 2784) == 16
+    assert report.crb_frame_count(10, 1) == 10
+    assert report.crb_frame_count(2100, 100) == 256 and report.crb_frame_count(2100, 1000) == 45
+
+
 def test_centroider_switch_splits_segments(tmp_path):
     truths = np.zeros((20, 1, 2))
     st = T0 + DT * np.arange(20)
@@ -110,6 +166,7 @@ def test_centroider_switch_splits_segments(tmp_path):
     assert res["algorithms"]["wfs:cmf"]["n"] == 12
     assert res["algorithms"]["wfs:cmf"]["mean_euclid"] == pytest.approx(0.1, abs=1e-6)
     assert res["algorithms"]["wfs:cmf"]["ratio_to_cog"] == pytest.approx(0.2, abs=1e-5)
+    assert res["algorithms"]["wfs:cmf"]["ratio_to_cog_basis"] == "each on its own frames (none in common)"
 
 
 def test_full_pupil_by_radius(tmp_path):
@@ -200,8 +257,9 @@ def test_report_writes_json_and_plots(tmp_path, capsys):
     assert "cog" in text and "mean |err|" in text
     summary = json.loads((out / "summary.json").read_text())
     assert summary["algorithms"]["cog"]["mean_euclid"] == pytest.approx(0.1 * math.sqrt(2), rel=1e-5)
-    assert (out / "error_timeseries.png").stat().st_size > 1000
-    assert (out / "error_by_radius.png").stat().st_size > 1000
+    for name in ("error_timeseries", "error_by_radius", "error_distribution", "error_ratios"):
+        assert (out / f"{name}.png").stat().st_size > 1000, name
+    assert sorted(summary["plots"]) == sorted(str(p) for p in out.glob("*.png"))
     assert cli.main(["report", str(path), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["algorithms"]["cog"]["n"] == 4 * lay.n_valid
 
