@@ -48,7 +48,9 @@ setup(
         "train": ["torch==2.13.0"],
         # colcon builds the package in a test, as a ROS install would.
         "test": ["pytest>=8,<10", "colcon-core>=0.15", "colcon-ros>=0.4",
-                 "colcon-python-setup-py>=0.2.8", "colcon-package-selection>=0.2"],
+                 "colcon-python-setup-py>=0.2.8", "colcon-package-selection>=0.2",
+                 # bags written by another rosbag2 writer (test/test_bags_interop.py)
+                 "rosbags>=0.10,<0.12"],
     },
     zip_safe=True,
     maintainer="lgs_wfs_ros developers",

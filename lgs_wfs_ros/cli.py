@@ -47,10 +47,8 @@ def _train(args):
 
 
 def _recover(args):
-    from .bags import recover
-    stats = recover(args.src, args.dst)
-    print(f"recovered {stats}")
-    return 0
+    from .bags import recover_command
+    return recover_command(args.src, args.dst, overwrite=args.overwrite)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -103,6 +101,7 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("recover", help="copy every readable message of a damaged bag to a new bag")
     p.add_argument("src")
     p.add_argument("dst")
+    p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=_recover)
     return ap
 

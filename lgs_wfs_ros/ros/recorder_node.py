@@ -40,9 +40,6 @@ from . import parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
 DEFAULT_TOPICS = ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor"]
-BLOCKS_QOS = {"history": "keep_last", "depth": 100, "reliability": "reliable", "durability": "volatile"}
-SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
-                 "durability": "transient_local"}
 
 # The recorder is not latency-critical: it lets messages gather for 2 ms between executor
 # rounds and takes up to 256 per topic per round (at 6 kHz single-subaperture the executor's
@@ -295,24 +292,16 @@ class RecorderNode(Node):
             self._skip(f"{topic}: {entry[3]}")
             return
         try:
-            msg = cutter.message(cdr)
+            written = subaps.write_blocks(self.writer, cutter, topic, cdr, received, source,
+                                          new_selection=not entry[4])
         except ValueError as exc:
             self._skip(f"{topic}: {exc}")
             return
-        out = subaps.blocks_topic(topic)
+        for t in written:
+            self.recorded[t] = self.recorded.get(t, 0) + 1
         if not entry[4]:
-            sel = subaps.selection_topic(out)
-            for t, ty, q in ((out, qos.TYPES["frame"], BLOCKS_QOS), (sel, qos.TYPES["sensor"], SELECTION_QOS)):
-                if t not in self.recorded:
-                    self.writer.add_topic(t, ty, qos=q)
-                    self.recorded[t] = 0
-            self.writer.write(sel, bags.encode_string(cutter.selection_json(topic, out)),
-                              max(received - 1, 0))
-            self.recorded[sel] += 1
             entry[4] = True
-            self.get_logger().info(f"recording {cutter.k} subapertures of {topic} on {out}")
-        self.writer.write(out, msg, received, source)
-        self.recorded[out] += 1
+            self.get_logger().info(f"recording {cutter.k} subapertures of {topic} on {written[-1]}")
 
     def _skip(self, reason):
         self.blocks_skipped += 1
