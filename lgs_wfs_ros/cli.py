@@ -41,9 +41,14 @@ def _reproduce(args):
 
 
 def _train(args):
-    from .learning.train import train_model
-    train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
-                quick=args.quick)
+    from .extras import MissingExtra
+    from .learning import train_model
+    try:
+        train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
+                    quick=args.quick, force=args.force)
+    except MissingExtra as exc:
+        print(f"lgs-wfs train: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -98,9 +103,11 @@ def parser() -> argparse.ArgumentParser:
                    help="exit 0 even when a check fails (default: exit 1)")
     p.set_defaults(func=_reproduce)
 
-    p = sub.add_parser("train", help="retrain a shipped model from scratch (needs .[train])")
+    p = sub.add_parser("train", help="retrain a model from scratch (needs the 'train' extra)")
     p.add_argument("name")
-    p.add_argument("--out", default="models")
+    p.add_argument("--out", default=None,
+                   help="directory for NAME.onnx and its README.md card (default: a new temporary one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out/NAME.onnx")
     p.add_argument("--samples", type=int, default=None)
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quick", action="store_true")

@@ -30,6 +30,50 @@ def test_import_without_torch():
     assert "ann_pupil" in out.stdout
 
 
+def test_train_without_torch_names_the_extra(tmp_path):
+    """``lgs-wfs train`` without torch: exit 2 and one line naming the 'train' extra."""
+    code = ("import sys\n"
+            "class Block:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'torch' or name.startswith('torch.'):\n"
+            "            raise ImportError('torch blocked')\n"
+            "sys.meta_path.insert(0, Block())\n"
+            "from lgs_wfs_ros import cli\n"
+            f"sys.exit(cli.main(['train', 'ann_1k', '--out', {str(tmp_path)!r}]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 2, out.stderr
+    assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert "'train' extra" in out.stderr and "lgs_wfs_ros[train]" in out.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_train_never_overwrites_and_writes_the_card(tmp_path, capsys):
+    """A tiny training run writes NAME.onnx and a README.md card generated from its
+    metadata; a second run refuses (the file untouched, exit 2 from the CLI) unless --force."""
+    pytest.importorskip("torch")
+    from lgs_wfs_ros import cli
+    from lgs_wfs_ros.learning import card, train
+    kw = dict(samples=1500, quick=True, validate=False, progress=False)
+    r = train.train_model("ann_diag", tmp_path, **kw)
+    path = tmp_path / "ann_diag.onnx"
+    assert r["path"] == str(path) and not list(tmp_path.glob("*.partial"))
+    meta = export.read_metadata(path)["lgs_wfs.training"]
+    text = (tmp_path / "README.md").read_text()
+    assert text == card.render(tmp_path)
+    assert f"| `ann_diag` | cartesian | 256-16-2 ({meta['parameters']} weights), adam | 1500 samples, " \
+           f"1000 photons (quick run) | {meta['check']['mean_err_px']:.4f} |" in text
+    assert meta["recipe_line"] in text
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="--force"):
+        train.train_model("ann_diag", tmp_path, **kw)
+    assert cli.main(["train", "ann_diag", "--out", str(tmp_path), "--samples", "1500", "--quick"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert path.read_bytes() == before
+    train.train_model("ann_diag", tmp_path, seed=99, force=True, **kw)
+    assert path.read_bytes() != before
+    assert export.read_metadata(path)["lgs_wfs.training"]["seed"] == 99
+
+
 def test_sample_shapes_normalisation_and_reproducibility():
     spec = dataset.DataSpec(Sensor.paper_single("polar"), photons=1000.0, sigma_px=0.5)
     a = dataset.sample(spec, np.random.default_rng(3), 64, input_gain=256.0)

@@ -72,10 +72,16 @@ def test_centroider_runs_model_on_its_sensor(name):
     assert err < 0.3
 
 
-def test_readme_lists_every_shipped_model():
-    text = (MODELS / "README.md").read_text()
-    for name in SHIPPED:
-        assert name in text
+@pytest.mark.parametrize("where", [MODELS, MODELS / "paper_prior"])
+def test_readme_is_the_card_generated_from_the_metadata(where):
+    """models/README.md (and paper_prior/) is exactly what ``card.render`` writes from the
+    files' metadata: a hand edit, or a model retrained without its card, fails here."""
+    from lgs_wfs_ros.learning import card
+    text = (where / "README.md").read_text()
+    assert text == card.render(where)
+    for name in card.model_names(where):
+        tr = export.read_metadata(where / f"{name}.onnx")["lgs_wfs.training"]
+        assert f"| {tr['check']['mean_err_px']:.4f} |" in text and tr["recipe_line"] in text
 
 
 def _full_pupil_samples(det):
@@ -138,7 +144,7 @@ def test_ann_noiseless_is_noise_free_and_beats_cog_on_measured_profiles():
 def test_ann_pupil_ring_criterion_recorded_and_reproduced():
     """Issue 5: on the outer, middle and inner rings of both detectors ann_pupil's mean error
     is within 1.1x that of a network trained for that one subaperture (recorded by
-    ``validate.finalize`` against the ``ref_*`` networks, 20,000 samples per ring); its own
+    ``lgs-wfs train ann_pupil`` (``train.record_validation``) against the ``ref_*`` networks, 20,000 samples per ring); its own
     recorded ring errors are reproduced on fresh samples (2,000 per ring, another seed:
     ~1.5 % standard error)."""
     from lgs_wfs_ros.learning import validate

@@ -15,7 +15,6 @@ PyTorch is imported inside the functions only.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -235,25 +234,46 @@ def check_error(path, rec: recipes.Recipe, n: int = CHECK_N, seed: int = CHECK_S
     return float(np.linalg.norm(out - truth, axis=1).mean())
 
 
-def train_model(name: str, out_dir="models", samples: int | None = None, seed: int | None = None,
+def target_path(name: str, out_dir=None, force: bool = False) -> Path:
+    """Where ``train_model`` writes model ``name``: ``out_dir/NAME.onnx``, never over an
+    existing file unless ``force``; ``out_dir=None``: a new temporary directory."""
+    recipes.get(name)
+    if out_dir is None:
+        import tempfile
+        out_dir = tempfile.mkdtemp(prefix="lgs-wfs-train-")
+    path = Path(out_dir) / f"{name}.onnx"
+    if path.exists() and not force:
+        raise FileExistsError(f"{path} exists; train into another --out directory, or pass --force "
+                              "to replace it")
+    return path
+
+
+def train_model(name: str, out_dir=None, samples: int | None = None, seed: int | None = None,
                 quick: bool = False, optimizer: str | None = None, validate: bool = True,
-                progress: bool = True, time_budget_s: float | None = None) -> dict:
-    """Retrain a model from scratch and write ``out_dir/NAME.onnx``.
+                progress: bool = True, time_budget_s: float | None = None,
+                force: bool = False) -> dict:
+    """Retrain a model from scratch into ``out_dir/NAME.onnx`` and regenerate the card.
 
     Args:
         name: a recipe name (:data:`.recipes.RECIPES`: ann_1k, ann_noiseless, ann_diag,
             ann_pupil and the ``ref_*`` reference networks).
-        out_dir: output directory (created).
+        out_dir: output directory (created; default a new temporary directory).
         samples: training samples (default the recipe's; ``quick``: 20,000).
         seed: data/initialisation seed (default the recipe's).
         quick: a small fast run (fewer samples and epochs) to check the pipeline.
-        optimizer: "adam" or "lm" (default the recipe's).
-        validate: run :func:`.validate.validate_model` and record its numbers.
+        optimizer: "adam" (default the recipe's).
+        validate: run :func:`.validate.validate_model` and record its numbers (for
+            ann_pupil also the ring criterion against the ``ref_*`` networks found in
+            ``out_dir``).
         time_budget_s: stop the optimiser after this wall time.
+        force: replace an existing ``out_dir/NAME.onnx`` (else ``FileExistsError``,
+            before any training).
 
     Returns:
-        ``{"path", "recipe", "history", "check_err_px", "validation", "seconds"}``.
+        ``{"path", "recipe", "history", "check_err_px", "validation", "seconds", "card"}``.
     """
+    target = target_path(name, out_dir, force)
+    out_dir = target.parent
     import torch
 
     rec = recipes.get(name)
@@ -318,41 +338,37 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     model = export.build_model(layers_of(net), pixels=recipe_sensor(rec).pixels,
                                conditioning=rec.conditioning, input_gain=input_gain(rec),
                                metadata=meta, name=name, rotate_to_local=rotate)
-    path = export.save(model, Path(out_dir) / f"{name}.onnx")
-    training["check"]["mean_err_px"] = check_error(path, rec)
+    tmp = export.save(model, target.with_name(target.name + ".partial"))
+    training["check"]["mean_err_px"] = check_error(tmp, rec)
     validation = None
     if validate:
-        from . import validate as val
-        validation = val.validate_model(path, rec, quick=quick, progress=progress)
-        training["validation"] = validation
-    export.update_metadata(path, {"lgs_wfs.training": training})
+        validation = record_validation(tmp, rec, training, out_dir, quick, progress)
+    export.update_metadata(tmp, {"lgs_wfs.training": training})
+    path = tmp.replace(target)
+    from . import card
+    card_path = card.write(out_dir)
     secs = time.perf_counter() - t0
     print(f"wrote {path}: check error {training['check']['mean_err_px']:.4f} px, "
           f"{secs:.0f} s", flush=True)
     return {"path": str(path), "recipe": line, "history": hist,
             "check_err_px": training["check"]["mean_err_px"], "validation": validation,
-            "seconds": secs}
+            "seconds": secs, "card": str(card_path)}
 
 
-def main(argv=None) -> int:
-    """``python -m lgs_wfs_ros.learning.train NAME [--quick] [--out DIR] [--samples N] ...``"""
-    import argparse
-    ap = argparse.ArgumentParser(description="retrain a shipped network from scratch")
-    ap.add_argument("name", choices=list(recipes.RECIPES) + ["all"])
-    ap.add_argument("--out", default="models")
-    ap.add_argument("--samples", type=int)
-    ap.add_argument("--seed", type=int)
-    ap.add_argument("--optimizer", choices=("adam", "lm"))
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--no-validate", action="store_true")
-    a = ap.parse_args(argv)
-    names = recipes.SHIPPED if a.name == "all" else (a.name,)
-    for n in names:
-        r = train_model(n, a.out, a.samples, a.seed, a.quick, a.optimizer,
-                        validate=not a.no_validate)
-        print(json.dumps({"path": r["path"], "check_err_px": r["check_err_px"]}))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def record_validation(path, rec: recipes.Recipe, training: dict, out_dir, quick: bool,
+                      progress: bool) -> dict:
+    """Validate a freshly written model and put the numbers into ``training`` (in place):
+    the cases of :func:`.validate.validate_model`; for pupil models also the whole-pupil
+    error and, when the ``ref_*`` networks are in ``out_dir``, the ring criterion."""
+    from . import validate as val
+    training["validation"] = val.validate_model(path, rec, quick=quick, progress=progress)
+    if rec.pupil:
+        n = 2000 if quick else val.PUPIL_CRITERION_N
+        training["pupil_all_subapertures_err_px"] = val.pupil_all_subapertures(path, n)
+        refs = [Path(out_dir) / f"{ref}.onnx" for ref, _ in val.RINGS.values()]
+        if all(r.is_file() for r in refs):
+            training["pupil_criterion"] = val.pupil_criterion(path, out_dir, out_dir, n=n)
+        else:
+            training["pupil_criterion_note"] = (f"not evaluated: train the ref_* networks into {out_dir} "
+                                                "first")
+    return training["validation"]

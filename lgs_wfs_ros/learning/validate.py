@@ -229,38 +229,6 @@ def pupil_criterion(pupil_path, model_dir="models", ref_dir="models",
     return rows
 
 
-__all__ = ["validate_model", "pupil_criterion", "sample_errors", "PUPIL_CRITERION_N", "case_frames", "positions", "errors",
-           "PAPER_TABLE1_MAS", "RINGS"]
-
-
-# ------------------------------------------------------------------ models/README.md
-def readme_table(model_dir="models") -> str:
-    """Markdown tables of the shipped models and their recorded validation errors."""
-    from . import export, recipes
-    lines = ["| model | detector | network | trained on | check error (px) |",
-             "|---|---|---|---|---|"]
-    val_lines = ["| model | detector | photons | profile | ANN (mas) | CoG (mas) | CMF (mas) | paper ANN / CoG / CMF (mas) |",
-                 "|---|---|---|---|---|---|---|---|"]
-    for name in recipes.SHIPPED:
-        path = Path(model_dir) / f"{name}.onnx"
-        if not path.is_file():
-            continue
-        tr = export.read_metadata(path).get("lgs_wfs.training", {})
-        rec = recipes.get(name)
-        ph = "noise-free" if rec.photons is None else f"{rec.photons:g} photons"
-        lines.append(f"| `{name}` | {rec.detector} | {'-'.join(map(str, rec.sizes))} "
-                     f"({tr.get('parameters', '?')} weights), {tr.get('optimizer', '?')} | "
-                     f"{tr.get('samples', '?')} samples, {ph} | "
-                     f"{tr.get('check', {}).get('mean_err_px', float('nan')):.4f} |")
-        for c in (tr.get("validation") or {}).get("cases", []):
-            paper = c.get("paper_mas")
-            ps = f"{paper['ann']:.0f} / {paper['cog']:.0f} / {paper['cmf']:.0f}" if paper else ""
-            val_lines.append(f"| `{name}` | {c['detector']} | {c['photons']:g} | {c['profile']} | "
-                             f"{c['ann']['mean_err_mas']:.1f} | {c['cog']['mean_err_mas']:.1f} | "
-                             f"{c['cmf']['mean_err_mas']:.1f} | {ps} |")
-    return "\n".join(lines) + "\n\n" + "\n".join(val_lines) + "\n"
-
-
 def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2) -> dict:
     """ann_pupil's mean error (px) over random valid subapertures of the default pupil,
     per detector, 1000 photons, fresh random (mvn) profiles, turbulence-like positions."""
@@ -273,58 +241,5 @@ def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2
     return out
 
 
-def finalize(model_dir="models", ref_dir="/tmp/runs/refs", quick: bool = False,
-             names=None) -> dict:
-    """Validate shipped models (default all), record the numbers in their metadata."""
-    from . import export, recipes
-    results = {}
-    for name in names or recipes.SHIPPED:
-        path = Path(model_dir) / f"{name}.onnx"
-        if not path.is_file():
-            continue
-        tr = export.read_metadata(path)["lgs_wfs.training"]
-        tr["validation"] = validate_model(path, recipes.get(name), quick=quick)
-        if name == "ann_pupil" and Path(ref_dir).is_dir():
-            tr["pupil_criterion"] = pupil_criterion(path, model_dir, ref_dir,
-                                                    n=2000 if quick else PUPIL_CRITERION_N)
-            tr["pupil_all_subapertures_err_px"] = pupil_all_subapertures(path, 2000 if quick else 20_000)
-        export.update_metadata(path, {"lgs_wfs.training": tr})
-        results[name] = tr
-    return results
-
-
-def pupil_table(model_dir="models") -> str:
-    """Markdown table of ann_pupil's ring-by-ring criterion (from its metadata)."""
-    from . import export
-    path = Path(model_dir) / "ann_pupil.onnx"
-    if not path.is_file():
-        return ""
-    tr = export.read_metadata(path).get("lgs_wfs.training", {})
-    rows = tr.get("pupil_criterion") or []
-    lines = ["| detector | ring | r (m) | ann_pupil (px) | dedicated 256-16-2 (px) | ratio (<= 1.1) |",
-             "|---|---|---|---|---|---|"]
-    for r in rows:
-        se = f" +- {r['ratio_se']:.3f}" if "ratio_se" in r else ""
-        lines.append(f"| {r['detector']} | {r['ring']} | {r['radius_m']:g} | {r['pupil_err_px']:.4f} | "
-                     f"{r['reference_err_px']:.4f} | {r['ratio']:.3f}{se} |")
-    if rows and "n" in rows[0]:
-        lines.append("")
-        lines.append(f"{rows[0]['n']:,} fresh random-profile samples per ring, 1000 photons, "
-                     "turbulence-like positions, the same samples for both networks; +- is the "
-                     "paired standard error of the ratio.")
-    allv = tr.get("pupil_all_subapertures_err_px")
-    if allv:
-        lines.append("")
-        lines.append("Mean error over random valid subapertures of the whole pupil, 1000 photons: "
-                     + ", ".join(f"{k} {v:.4f} px ({v * 500:.1f} mas)" for k, v in allv.items()) + ".")
-    return "\n".join(lines) + "\n"
-
-
-def write_readme(model_dir="models", header: str = "", footer: str = "") -> Path:
-    """Write ``model_dir/README.md`` from the models' metadata (plus fixed text)."""
-    text = (header + "\n## Shipped models\n\n" + readme_table(model_dir)
-            + "\n## Full-pupil criterion (ann_pupil vs a network trained for that subaperture)\n\n"
-            + pupil_table(model_dir) + "\n" + footer)
-    p = Path(model_dir) / "README.md"
-    p.write_text(text)
-    return p
+__all__ = ["validate_model", "pupil_criterion", "pupil_all_subapertures", "sample_errors",
+           "PUPIL_CRITERION_N", "case_frames", "positions", "errors", "PAPER_TABLE1_MAS", "RINGS"]
