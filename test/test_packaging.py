@@ -174,3 +174,12 @@ def test_runtime_venv_imports_every_module_and_pip_check_is_clean(tmp_path):
     train = subprocess.run([str(py), "-m", "lgs_wfs_ros.cli", "train", "ann_1k", "--out", str(tmp_path / "m")],
                            capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert train.returncode == 2 and "'train' extra" in train.stderr and "Traceback" not in train.stderr
+
+
+def test_import_contracts_hold(tmp_path, monkeypatch):
+    """import-linter (setup.cfg): the layers sensor -> optics -> bags -> centroiding ->
+    learning -> analysis -> ros -> cli (a lower one never imports a higher one) and no
+    import cycle between sibling modules anywhere in the package."""
+    from importlinter.cli import lint_imports
+    monkeypatch.chdir(ROOT)
+    assert lint_imports(config_filename=str(ROOT / "setup.cfg"), no_cache=True, no_logo=True) == 0

@@ -8,7 +8,7 @@ Cases (one subaperture, the paper's geometry ``Sensor.paper_single(detector)``):
   (:data:`.dataset.MEASURED_VALIDATION`), each for an equal block of consecutive frames.
 - photons 316 and 1000, photon noise only (the paper's cases).
 - positions: turbulence-like, a time series with the one-axis rms of the reference
-  instrument (0.46 px, :func:`.dataset.turbulence_sigma_px`) and an exponential
+  instrument (0.45 px, :func:`..optics.turbulence.turbulence_sigma_px`, square subaperture) and an exponential
   correlation of ``CORR_FRAMES`` = 35 frames (frozen flow at 10 m/s crosses a 0.5 m
   subaperture in 50 ms = 35 frames at 700 Hz), so the CMF's history reference (mean of the
   last 5 frames, the paper's) sees consecutive frames as it would on the sky.
@@ -30,9 +30,11 @@ import numpy as np
 
 from ..optics import sodium
 from ..optics.detector import expose
+from ..optics.geometry import detector_to_local, layout
 from ..optics.spots import SpotModel
+from ..optics.turbulence import turbulence_sigma_px
 from ..sensor import Sensor
-from . import dataset
+from . import dataset, export
 
 CORR_FRAMES = 35.0
 PHOTONS = (316.0, 1000.0)
@@ -91,10 +93,9 @@ def case_frames(detector: str, photons: float, profile: str, n: int, seed: int =
         xy = (radius_m, 0.0) if detector == "polar" else (radius_m / math.sqrt(2),) * 2
         sensor = Sensor(detector=detector, photons=photons, dtype="float32",
                         single_subaperture_xy_m=xy)
-    from ..optics.geometry import layout
     lay = layout(sensor)
     rng = np.random.default_rng([seed, int(photons), len(profile), 7 if detector == "polar" else 9])
-    t = positions(rng, n, dataset.turbulence_sigma_px(Sensor()))
+    t = positions(rng, n, turbulence_sigma_px(Sensor()))
     h, rho = _profiles(profile, n, rng)
     spots = SpotModel(sensor, np.full(n, lay.r_m[0]), np.tile(lay.e[0], (n, 1)), h, rho,
                       max_shift_px=float(np.abs(t).max()))
@@ -161,7 +162,7 @@ def validate_model(path, rec, quick: bool = False, progress: bool = True) -> dic
                     print(f"  {Path(path).stem} {det:9s} {ph:6.0f} ph {prof:9s}: ann "
                           f"{row['ann']['mean_err_mas']:6.1f} mas, cog {row['cog']['mean_err_mas']:6.1f}, "
                           f"cmf {row['cmf']['mean_err_mas']:6.1f}", flush=True)
-    return {"frames": n, "position_rms_px": dataset.turbulence_sigma_px(Sensor()),
+    return {"frames": n, "position_rms_px": turbulence_sigma_px(Sensor()),
             "position_corr_frames": CORR_FRAMES, "cases": cases}
 
 
@@ -174,20 +175,18 @@ def ring_samples(detector: str, radius_m: float, n: int, seed: int = VAL_SEED + 
     """
     e = np.array([1.0, 0.0]) if detector == "polar" else np.array([1.0, 1.0]) / math.sqrt(2)
     spec = dataset.DataSpec(Sensor.paper_single("polar"), photons=1000.0,
-                            sigma_px=dataset.turbulence_sigma_px(Sensor()))
+                            sigma_px=turbulence_sigma_px(Sensor()))
     return dataset.sample(spec, np.random.default_rng([seed, int(radius_m * 100)]), n,
                           r_m=np.full(n, radius_m), e_pix=np.tile(e, (n, 1)))
 
 
 def sample_errors(path, s: dataset.Samples) -> np.ndarray:
     """``(n,)`` Euclidean errors (px) of a model on pixel-axes samples (direct onnxruntime)."""
-    from . import export
-    from .train import onnx_predict, to_local
     meta = export.read_metadata(path)
-    out = onnx_predict(Path(path), s)
+    out = export.predict_samples(Path(path), s)
     truth = s.y.astype(np.float64)
     if meta.get("lgs_wfs.output_frame") == "local" and meta.get("lgs_wfs.conditioning", "none") != "none":
-        truth = to_local(truth, s.e_pix)       # conditioned models rotate to along/across e
+        truth = detector_to_local(truth, s.e_pix)       # conditioned models rotate to along/across e
     return np.linalg.norm(out - truth, axis=1)
 
 
@@ -235,7 +234,7 @@ def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2
     out = {}
     for det in ("polar", "cartesian"):
         spec = dataset.DataSpec(Sensor(), photons=1000.0, pupil=True, detectors=(det,),
-                                conditioning="e_r", sigma_px=dataset.turbulence_sigma_px(Sensor()))
+                                conditioning="e_r", sigma_px=turbulence_sigma_px(Sensor()))
         s = dataset.sample(spec, np.random.default_rng([seed, len(det)]), n)
         out[det] = pixel_errors(pupil_path, s)
     return out
