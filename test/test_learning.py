@@ -15,32 +15,32 @@ from lgs_wfs_ros.optics.spots import spot_images
 from lgs_wfs_ros.sensor import Sensor
 
 
+BLOCK_TORCH = ("import sys\n"
+               "class Block:\n"
+               "    def find_spec(self, name, path=None, target=None):\n"
+               "        if name == 'torch' or name.startswith('torch.'):\n"
+               "            raise ImportError('torch blocked')\n"
+               "sys.meta_path.insert(0, Block())\n")
+
+
+def run_without_torch(code: str) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter in which ``import torch`` fails."""
+    return subprocess.run([sys.executable, "-c", BLOCK_TORCH + code], capture_output=True, text=True)
+
+
 def test_import_without_torch():
-    code = ("import sys\n"
-            "class Block:\n"
-            "    def find_spec(self, name, path=None, target=None):\n"
-            "        if name == 'torch' or name.startswith('torch.'):\n"
-            "            raise ImportError('torch blocked')\n"
-            "sys.meta_path.insert(0, Block())\n"
-            "import lgs_wfs_ros.learning as L\n"
-            "from lgs_wfs_ros.learning import dataset, export, recipes, validate, train\n"
-            "assert 'torch' not in sys.modules\n"
-            "print(sorted(L.SHIPPED))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    out = run_without_torch("import lgs_wfs_ros.learning as L\n"
+                            "from lgs_wfs_ros.learning import card, dataset, export, recipes, validate, train\n"
+                            "assert 'torch' not in sys.modules\n"
+                            "print(sorted(L.SHIPPED))")
+    assert out.returncode == 0, out.stderr
     assert "ann_pupil" in out.stdout
 
 
 def test_train_without_torch_names_the_extra(tmp_path):
     """``lgs-wfs train`` without torch: exit 2 and one line naming the 'train' extra."""
-    code = ("import sys\n"
-            "class Block:\n"
-            "    def find_spec(self, name, path=None, target=None):\n"
-            "        if name == 'torch' or name.startswith('torch.'):\n"
-            "            raise ImportError('torch blocked')\n"
-            "sys.meta_path.insert(0, Block())\n"
-            "from lgs_wfs_ros import cli\n"
-            f"sys.exit(cli.main(['train', 'ann_1k', '--out', {str(tmp_path)!r}]))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    out = run_without_torch("from lgs_wfs_ros import cli\n"
+                            f"sys.exit(cli.main(['train', 'ann_1k', '--out', {str(tmp_path)!r}]))")
     assert out.returncode == 2, out.stderr
     assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
     assert "'train' extra" in out.stderr and "lgs_wfs_ros[train]" in out.stderr
