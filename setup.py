@@ -29,26 +29,29 @@ setup(
     ],
     python_requires=">=3.10",
     # Ranges here; the exact versions CI tests with are pinned in constraints.txt.
+    # Runtime: exactly what the modules outside ros/ import (test_packaging checks it).
     install_requires=[
-        "setuptools",
         "numpy>=1.26,<3",
         "scipy>=1.11,<2",
-        "aotools>=1.0.7,<2",
         "onnxruntime>=1.17,<2",
         "onnx>=1.15,<2",
-        "mcap>=1.1,<2",
-        "mcap-ros2-support>=0.5,<1",
         "matplotlib>=3.7,<4",
         "tqdm>=4.60,<5",
         "PyYAML>=6,<7",
+        "mcap>=1.1,<2",              # the MCAP container (bags/reader.py)
+        "zstandard>=0.22,<1",        # MCAP chunk compression (bags/reader.py, writer.py)
+        "lz4>=4,<5",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for a plain venv; leave it out on a system ROS install.
         "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6"],
         "train": ["torch==2.13.0"],
+        # Test-only tools: aotools and the mcap reference readers check our own code;
         # colcon builds the package in a test, as a ROS install would.
-        "test": ["pytest>=8,<10", "colcon-core>=0.15", "colcon-ros>=0.4",
-                 "colcon-python-setup-py>=0.2.8", "colcon-package-selection>=0.2",
+        "test": ["pytest>=8,<10", "aotools>=1.0.7,<2", "mcap-ros2-support>=0.5,<1",
+                 "import-linter>=2.16,<3",
+                 "colcon-core>=0.15", "colcon-ros>=0.4", "colcon-python-setup-py>=0.2.8",
+                 "colcon-package-selection>=0.2",
                  # bags written by another rosbag2 writer (test/test_bags_interop.py)
                  "rosbags>=0.10,<0.12"],
     },

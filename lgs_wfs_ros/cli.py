@@ -36,13 +36,19 @@ def _replay(args):
 
 def _reproduce(args):
     from .analysis.reproduce import reproduce
-    return reproduce(quick=args.quick, out_dir=args.out)
+    return reproduce(quick=args.quick, out_dir=args.out, update_docs=args.update_docs,
+                     allow_fail=args.allow_fail)
 
 
 def _train(args):
-    from .learning.train import train_model
-    train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
-                quick=args.quick)
+    from .extras import MissingExtra
+    from .learning import train_model
+    try:
+        train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
+                    quick=args.quick, force=args.force)
+    except MissingExtra as exc:
+        print(f"lgs-wfs train: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -86,13 +92,20 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_replay)
 
     p = sub.add_parser("reproduce", help="the paper's figures and tables with our code")
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--out", default="docs")
+    p.add_argument("--quick", action="store_true", help="fewer frames and a shorter validation run")
+    p.add_argument("--out", default=None,
+                   help="directory for reproduction.md/.json and figures/ (default: a new temporary one)")
+    p.add_argument("--update-docs", action="store_true",
+                   help="write into the checkout's docs/ instead (the tracked report)")
+    p.add_argument("--allow-fail", action="store_true",
+                   help="exit 0 even when a check fails (default: exit 1)")
     p.set_defaults(func=_reproduce)
 
-    p = sub.add_parser("train", help="retrain a shipped model from scratch (needs .[train])")
+    p = sub.add_parser("train", help="retrain a model from scratch (needs the 'train' extra)")
     p.add_argument("name")
-    p.add_argument("--out", default="models")
+    p.add_argument("--out", default=None,
+                   help="directory for NAME.onnx and its README.md card (default: a new temporary one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out/NAME.onnx")
     p.add_argument("--samples", type=int, default=None)
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quick", action="store_true")
