@@ -42,6 +42,11 @@ def feed(rig, proc, stop_after_s, frame):
         stamp += 1
         sent += 1
         time.sleep(0.002)
+    # a loaded machine can starve the recorder: make sure its reader has the frames (reliable
+    # QoS acknowledges them) and give it a moment to take them, so the signal lands mid-recording
+    from rclpy.duration import Duration
+    assert rig.frame_pub.wait_for_all_acked(Duration(seconds=20))
+    time.sleep(0.2)
     return sent
 
 
