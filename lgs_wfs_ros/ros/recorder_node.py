@@ -36,10 +36,11 @@ from ..bags import subapertures as subaps
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from .spinning import run_node, take_queued
-from . import parameters, qos
+from . import health, parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
-DEFAULT_TOPICS = ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor"]
+#: relative names resolve in the node's namespace (/wfs by default) and follow remappings
+DEFAULT_TOPICS = ["frame", "true_slopes", "sensor"]
 BLOCKS_QOS = {"history": "keep_last", "depth": 100, "reliability": "reliable", "durability": "volatile"}
 SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
                  "durability": "transient_local"}
@@ -70,12 +71,14 @@ def default_output() -> str:
 
 class RecorderNode(Node):
     def __init__(self, **kwargs):
+        kwargs.setdefault("namespace", "wfs")
         super().__init__("recorder_node", **kwargs)
         parameters.declare(self, "output", default_output(), "Path of the MCAP bag to write.",
                            read_only=True)
         parameters.declare(self, "overwrite", False, "Replace an existing output file.",
                            read_only=True)
-        parameters.declare(self, "topics", DEFAULT_TOPICS, "Topics to record (absolute names).",
+        parameters.declare(self, "topics", DEFAULT_TOPICS, "Topics to record (relative names resolve "
+                           "in the node's namespace and follow remappings).",
                            read_only=True)
         parameters.declare(self, "discover", True, "Also record contract topics found in the "
                            "graph (checked every second).")
@@ -125,11 +128,18 @@ class RecorderNode(Node):
         self._kept = {}          # frame topic -> frames kept (for full_frame_every)
         self.blocks_skipped = 0
         self.skip_reason = ""
+        self.health = health.Health(self, self._diagnostic_values)
         for topic in self.get_parameter("topics").value:
+            topic = self.resolve_topic_name(topic)
             self._subscribe(topic, qos.TYPES.get(topic.rsplit("/", 1)[-1]))
         self._discover_timer = self.create_timer(1.0, self._discover)
         self._discover()
-        self.get_logger().info(f"recording to {out}")
+        self.health.set_state(health.OK, f"recording to {out}")
+
+    def _diagnostic_values(self) -> dict:
+        return {"output": str(self.path), "frames_seen": self.frames_seen,
+                "blocks_skipped": self.blocks_skipped,
+                **{f"recorded {t}": n for t, n in sorted(self.recorded.items())}}
 
     def _validate(self, params):
         for p in params:
@@ -326,7 +336,8 @@ class RecorderNode(Node):
 
     def _fail(self, reason: str):
         self.failed = reason
-        self.get_logger().error(reason + "; closing the bag, what was written stays readable")
+        self.health.set_state(health.ERROR, reason + "; closing the bag, what was written "
+                              "stays readable")
         self.close()
 
     def close(self):

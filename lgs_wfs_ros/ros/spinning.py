@@ -1,18 +1,34 @@
 """Running a node process: spin until done or asked to stop (SIGINT / SIGTERM), shut down in order.
 
 Every node's ``main()`` is :func:`run_node`: configure the environment, ``rclpy.init``, build
-the node (a refused start prints the reason and exits 2), spin it on the global executor,
+the node (a refused start logs the reason and exits 2), spin it on the global executor,
 then finish the node, destroy it and ``rclpy.try_shutdown()`` whatever happened.
+
+SIGINT and SIGTERM only set a flag here (rclpy's own handlers are off): with rclpy's, the
+context is shut down inside the signal, so the node's last words (final counts, "closed the
+bag") and its destruction meet a dead context ("Failed to publish log message to rosout").
+The spin notices the flag within ``timeout_sec`` and the shutdown runs in order.
 """
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 
 import rclpy
+import rclpy.logging
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
 
 from . import environment
+
+STOP = threading.Event()     # set by SIGINT / SIGTERM in a node process
+
+
+def _on_signal(signum, _frame):
+    STOP.set()
 
 
 def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0) -> None:
@@ -26,7 +42,7 @@ def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0) -> No
     overhead per message, at the cost of up to ``pause_s`` of latency (for the recorder,
     never for the centroider).
     """
-    while not done():
+    while not done() and not STOP.is_set():
         if pause_s > 0:
             time.sleep(pause_s)
         try:
@@ -47,7 +63,14 @@ DRAIN = 16   # messages taken per executor callback at most (other callbacks wai
 def take_queued(sub, msg_type, limit: int):
     """Yield up to ``limit`` (message, info) already queued on a raw subscription, taken
     without the executor (rclpy's executor costs ~0.3 ms of Python per message); stops at the
-    first empty take or if the subscription is gone."""
+    first empty take or if the subscription is gone.
+
+    ``sub.handle.take_message`` is rclpy's internal handle API: Jazzy's rclpy has no public
+    way to take a message outside the executor (``Subscription`` has no ``take``; rclpy's own
+    ``wait_for_message`` and executor call the same handle method), and a wait set per
+    message (``wait_for_message``) costs what the executor does. Kept for the measured drain
+    (docs/transport.md); the node tests drain through it.
+    """
     for _ in range(limit):
         try:
             with sub.handle:
@@ -73,7 +96,12 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         pause_s: see :func:`spin_until`.
     """
     environment.configure()
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    STOP.clear()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, _on_signal)
+    refused = tuple(refused) + (ParameterException,)
     node, code = None, 0
     try:
         node = factory()
@@ -82,7 +110,7 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         rclpy.get_global_executor().add_node(node)
         spin_until(node, (lambda: done(node)) if done else (lambda: False), pause_s=pause_s)
     except refused as exc:
-        print(f"{name}: cannot start: {exc}", flush=True)
+        rclpy.logging.get_logger(name).error(f"cannot start: {exc}")
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
