@@ -57,6 +57,30 @@ def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0) -> No
             return
 
 
+FLUSH_S = 5.0   # at exit, wait this long at most for subscribers to acknowledge what was sent
+
+
+def flush(node, timeout_s: float = FLUSH_S) -> bool:
+    """Wait until every reliable publisher of ``node`` has its messages acknowledged by its
+    subscribers (or ``timeout_s`` passes); True if all were.
+
+    A reliable writer only promises delivery while it exists: destroying the node drops what
+    a slow subscriber (the recorder, on a loaded machine) has not acknowledged yet, so the
+    last slopes a centroider counted as processed could miss the bag. Called after
+    ``finish`` (no more publishing) and before the node is destroyed.
+    """
+    from rclpy.duration import Duration
+    deadline = time.monotonic() + timeout_s
+    acked = True
+    for pub in list(node.publishers):
+        left = deadline - time.monotonic()
+        try:
+            acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(max(left, 0.0) * 1e9)))
+        except Exception:   # a publisher already gone (InvalidHandle)
+            continue
+    return acked
+
+
 DRAIN = 16   # messages taken per executor callback at most (other callbacks wait that long)
 
 
@@ -119,6 +143,9 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
             if finish is not None:
                 result = finish(node)
                 code = code if result is None else result
+            if rclpy.ok(context=node.context) and not flush(node):
+                node.get_logger().warning(f"some messages were not acknowledged by their "
+                                          f"subscribers within {FLUSH_S:g} s of the end")
             node.destroy_node()
         rclpy.try_shutdown()
     return code
