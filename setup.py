@@ -46,7 +46,8 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
-        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")
+         + glob("config/*.json")),
         ("share/" + package_name + "/models", glob("models/*.onnx") + glob("models/*.json")),
         ("share/" + package_name + "/models/paper_prior", glob("models/paper_prior/*.onnx")
          + glob("models/paper_prior/*.md")),

@@ -11,18 +11,22 @@ Parameters: ``algorithm`` and one typed parameter per algorithm option, ``<algor
 its descriptions, ranges, choices and read-only flags; the centroider is
 ``options.build(algorithm, sensor, options.from_parameters(algorithm, values))``, the same
 call replay and the Python API make. Also publishes ``slopes_picture`` (rgb8, x and y maps
-side by side, a few Hz, only while someone subscribes) and its state on ``/diagnostics``.
+side by side, a few Hz) and ``slope_error`` (Vector3Stamped: rms error against
+``true_slopes`` in x, y and total, pixels, ~10 Hz), each only while someone subscribes, and
+its state on ``/diagnostics``.
 A centroider that cannot be built (model missing, a sensor it cannot run on) leaves the node
 running, its cause logged once and on ``/diagnostics``, until a parameter or sensor fixes it.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import threading
 import time
 
 import numpy as np
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -68,12 +72,17 @@ class CentroiderNode(Node):
             parameters.declare_option(self, opt)
         parameters.declare(self, "sensor_json", "", "Sensor description to use until one "
                            "arrives on the sensor topic (empty: the default sensor).")
-        parameters.declare(self, "log_period_s", 5.0, "Seconds between counter log lines.",
+        parameters.declare(self, "log_period_s", 10.0, "Seconds between counter log lines "
+                           "(written only when the counters changed).",
                            low=0.1, high=3600.0)
         parameters.declare(self, "picture_hz", 5.0, "Rate of the slopes_picture image "
                            "(rgb8: x and y slope maps side by side; 0: off), Hz.",
                            low=0.0, high=100.0)
-        parameters.declare(self, "picture_range_px", 1.0, "Slope shown at full colour in "
+        parameters.declare(self, "error_hz", 10.0, "Rate of slope_error (rms of slopes - "
+                           "true_slopes over the valid subapertures, pixels: vector x, y and "
+                           "z = total), computed only while someone subscribes; 0: off), Hz.",
+                           low=0.0, high=1000.0)
+        parameters.declare(self, "picture_range_px", 2.0, "Slope shown at full colour in "
                            "slopes_picture (blue -range, white 0, red +range), pixels.",
                            low=1e-3, high=100.0)
 
@@ -84,6 +93,7 @@ class CentroiderNode(Node):
         self._last_stamp = None
         self._sensor_received = False
         self._next_picture = 0.0
+        self._last_line = ""
         self.sensor = self._initial_sensor()
         self.layout = geometry.layout(self.sensor)
         self.centroider = None
@@ -107,6 +117,12 @@ class CentroiderNode(Node):
         self._slopes_pub = self.create_publisher(Image, "slopes", qos.SLOPES)
         self._picture_pub = self.create_publisher(Image, "slopes_picture", qos.PICTURE)
         self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
+        self._error_pub = self.create_publisher(Vector3Stamped, "slope_error", qos.SLOPES)
+        self._truth_sub = None
+        self._truth = None                           # (stamp, grid) waiting for its slopes
+        self._recent = collections.OrderedDict()     # stamp -> slopes grid, while measured
+        self._next_error = 0.0
+        self.create_timer(1.0, self._follow_error_subscribers)
         self._frame_sub = None
         self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
@@ -187,6 +203,9 @@ class CentroiderNode(Node):
             return
         try:
             centroider = self._build(self._settings(), sensor)
+        except ModelNotFoundError as exc:
+            self._no_centroider(f"model missing: {exc}")
+            return
         except (ValueError, OSError, RuntimeError) as exc:
             self._no_centroider(f"the algorithm cannot run on the sensor received: {exc}")
             return
@@ -251,6 +270,58 @@ class CentroiderNode(Node):
             self.counters.processed += 1
         if results:
             self._maybe_picture(*results[-1])
+            if self._truth_sub is not None:
+                for stamp_ns, grid in results:
+                    self._recent[stamp_ns] = grid
+                while len(self._recent) > 64:
+                    self._recent.popitem(last=False)
+                self._publish_error()
+
+    # -- error against the truth, for plots (only while slope_error has subscribers) ------
+    def _follow_error_subscribers(self):
+        """Subscribe to true_slopes while slope_error has subscribers (a 700 Hz callback
+        costs CPU nobody would use otherwise)."""
+        want = (self.get_parameter("error_hz").value > 0
+                and self._error_pub.get_subscription_count() > 0)
+        if want and self._truth_sub is None:
+            self._truth_sub = self.create_subscription(Image, "true_slopes", self._on_truth,
+                                                       qos.SLOPES, raw=True)
+        elif not want and self._truth_sub is not None:
+            self.destroy_subscription(self._truth_sub)
+            self._truth_sub, self._truth = None, None
+            self._recent.clear()
+
+    def _on_truth(self, cdr: bytes):
+        if time.monotonic() < self._next_error:
+            return
+        try:
+            stamp_ns, _, _, truth = bags.decode_image(cdr)
+        except Exception as exc:
+            self.health.note("undecodable true_slopes ignored", str(exc))
+            return
+        self._truth = (stamp_ns, np.array(truth))
+        self._publish_error()
+
+    def _publish_error(self):
+        """rms (slopes - truth) of the waiting truth's frame, once its slopes exist."""
+        if self._truth is None or self._truth[0] not in self._recent:
+            return
+        stamp_ns, truth = self._truth
+        grid = self._recent[stamp_ns]
+        self._truth = None
+        if grid.shape != truth.shape:
+            return
+        d = grid - truth
+        d = d[np.isfinite(d).all(axis=-1)]          # (n valid, 2)
+        if not len(d):
+            return
+        ex, ey = np.sqrt(np.mean(d ** 2, axis=0)).tolist()
+        msg = Vector3Stamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 10**9)
+        msg.header.frame_id = "wfs"
+        msg.vector.x, msg.vector.y, msg.vector.z = ex, ey, float(np.hypot(ex, ey))
+        self._error_pub.publish(msg)
+        self._next_error = time.monotonic() + 1.0 / self.get_parameter("error_hz").value
 
     def _accept(self, cdr: bytes):
         """Decode and check one frame: ``(stamp_ns, image)``, or None (counted as rejected)."""
@@ -304,13 +375,14 @@ class CentroiderNode(Node):
                 "frame_shape": "x".join(map(str, self.sensor.frame_shape))}
 
     def _log_counters(self):
+        """The counters every log_period_s, when they changed (silent while idle)."""
         c = self.counters
-        if not c.received:
-            return
         extra = self.health.summary()
-        self.get_logger().info(
-            f"frames received {c.received}, processed {c.processed}, dropped {c.dropped}, "
-            f"rejected {c.rejected}" + (f" ({extra})" if extra else ""))
+        line = (f"frames received {c.received}, processed {c.processed}, dropped {c.dropped}, "
+                f"rejected {c.rejected}" + (f" ({extra})" if extra else ""))
+        if c.received and line != self._last_line:
+            self.get_logger().info(line)
+        self._last_line = line
 
 
 def _final_counts(node) -> None:

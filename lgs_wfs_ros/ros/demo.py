@@ -63,7 +63,8 @@ def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, s
             # moving spot and so reports ~0 under turbulence (docs/reproduction.md).
             params.update({"cmf.reference": "model", "cmf.weighting": "model"})
         specs.append(NodeSpec("centroider_node", name, params,
-                              {"frame": "/wfs/frame", "sensor": "/wfs/sensor"}))
+                              {"frame": "/wfs/frame", "sensor": "/wfs/sensor",
+                               "true_slopes": "/wfs/true_slopes"}))
     specs.append(NodeSpec("simulator_node", "wfs", sim))
     return specs
 

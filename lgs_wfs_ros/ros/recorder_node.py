@@ -22,6 +22,7 @@ when the disk fills up (reported; what was written stays readable).
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -50,6 +51,10 @@ SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
 # per-round Python, not the writing, was most of its CPU).
 SPIN_PAUSE_S = 0.002
 RECORDER_DRAIN = 256
+# On SIGINT/SIGTERM the recorder keeps recording this long before closing the bag: a launch
+# file interrupts every node at once, and the producers' last messages (flushed by their own
+# shutdown, ros/spinning.py) are still on their way.
+STOP_LINGER_S = 1.0
 
 
 def _namespace(topic: str) -> str:
@@ -114,6 +119,8 @@ class RecorderNode(Node):
         self.writer = bags.BagWriter(out, overwrite=p["overwrite"], chunk_size=p["chunk_kb"] * 1024,
                                      compression=None if p["compression"] == "none" else p["compression"])
         self.recorded: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}          # topic -> messages lost before the recorder
+        self._sequence: dict[str, int] = {}     # topic -> last publication sequence number
         self.frames_seen = 0
         self.failed = ""
         self.done = False        # the bag is closed
@@ -138,6 +145,7 @@ class RecorderNode(Node):
 
     def _diagnostic_values(self) -> dict:
         return {"output": str(self.path), "frames_seen": self.frames_seen,
+                **{f"lost before the recorder {t}": n for t, n in sorted(self.gaps.items())},
                 "blocks_skipped": self.blocks_skipped,
                 **{f"recorded {t}": n for t, n in sorted(self.recorded.items())}}
 
@@ -230,9 +238,25 @@ class RecorderNode(Node):
         self._create_subscription(topic, qos.TYPES["frame"], profile)
         self.get_logger().info(f"{topic}: frame queue resized to {profile.depth} for its sensor")
 
+    def _count_gap(self, topic, info) -> None:
+        """Messages of ``topic`` that never reached this subscription: gaps in the
+        publisher's sequence numbers (a KEEP_LAST queue overwritten while the recorder
+        stalled, or a writer gone before delivering). Counted per topic, for one publisher
+        per topic (the contract's graphs); a sequence going back (a new publisher) restarts."""
+        seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not seq:
+            return
+        last = self._sequence.get(topic)
+        if last is not None and seq > last + 1:
+            self.gaps[topic] = self.gaps.get(topic, 0) + seq - last - 1
+            self.health.note(f"messages lost before the recorder on {topic}",
+                             f"publication sequence jumped from {last} to {seq}")
+        self._sequence[topic] = seq
+
     def _on_message(self, topic, kind, cdr, info):
         if self.closing:
             return
+        self._count_gap(topic, info)
         if kind == "frame":
             if self.budget_reached:
                 return
@@ -355,7 +379,8 @@ class RecorderNode(Node):
         counts = ", ".join(f"{t}: {n}" for t, n in sorted(self.recorded.items()))
         saved = getattr(self.writer, "saved_count", None)
         self.get_logger().info(f"closed {self.path}: {saved} messages saved "
-                               f"(received and written: {counts})")
+                               f"(received and written: {counts}); "
+                               f"sequence gaps {json.dumps(self.gaps, sort_keys=True)}")
 
 
 def _finish(node) -> int:
@@ -367,7 +392,7 @@ def main(args=None):
     # BagError: e.g. the output exists and overwrite is false
     return run_node("recorder_node", RecorderNode, done=lambda n: n.done,
                     refused=(bags.BagError, ValueError), finish=_finish, args=args,
-                    pause_s=SPIN_PAUSE_S)
+                    pause_s=SPIN_PAUSE_S, stop_linger_s=STOP_LINGER_S)
 
 
 if __name__ == "__main__":

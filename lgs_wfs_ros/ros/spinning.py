@@ -31,7 +31,8 @@ def _on_signal(signum, _frame):
     STOP.set()
 
 
-def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0) -> None:
+def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0,
+               stop_linger_s: float = 0.0) -> None:
     """Spin ``node`` until ``done()`` is true or the context shuts down.
 
     rclpy's signal handler shuts the context down on SIGINT and SIGTERM; a spin that was
@@ -41,8 +42,16 @@ def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0) -> No
     batches that the callbacks drain together (:func:`take_queued`): far less executor
     overhead per message, at the cost of up to ``pause_s`` of latency (for the recorder,
     never for the centroider).
+
+    ``stop_linger_s`` > 0 keeps spinning that long after a stop signal (the recorder: the
+    last messages its publishers flush on their own SIGINT still reach the bag).
     """
-    while not done() and not STOP.is_set():
+    stop_at = None
+    while not done():
+        if STOP.is_set():
+            stop_at = stop_at or time.monotonic() + stop_linger_s
+            if time.monotonic() >= stop_at:
+                return
         if pause_s > 0:
             time.sleep(pause_s)
         try:
@@ -107,7 +116,7 @@ def take_queued(sub, msg_type, limit: int):
 
 
 def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=None,
-             args=None, pause_s: float = 0.0) -> int:
+             args=None, pause_s: float = 0.0, stop_linger_s: float = 0.0) -> int:
     """Run one node process; the exit code (0, or 2 when the start was refused).
 
     Args:
@@ -117,7 +126,7 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         done: ``done(node) -> bool`` ends the spin (default: run until a signal).
         finish: ``finish(node) -> int | None`` runs before the node is destroyed, also after a
             signal; a non-None result becomes the exit code.
-        pause_s: see :func:`spin_until`.
+        pause_s, stop_linger_s: see :func:`spin_until`.
     """
     environment.configure()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -132,7 +141,8 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         # Added once: rclpy.spin_once would otherwise add and remove the node on every call,
         # which wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
         rclpy.get_global_executor().add_node(node)
-        spin_until(node, (lambda: done(node)) if done else (lambda: False), pause_s=pause_s)
+        spin_until(node, (lambda: done(node)) if done else (lambda: False), pause_s=pause_s,
+                   stop_linger_s=stop_linger_s)
     except refused as exc:
         rclpy.logging.get_logger(name).error(f"cannot start: {exc}")
         code = 2
