@@ -74,7 +74,8 @@ def _ament_share() -> list[Path]:
 def model_dirs() -> list[Path]:
     """Directories searched for model names, in order (duplicates removed)."""
     here = Path(__file__).resolve()
-    dirs = [here.parents[2] / "models"]                            # the source tree
+    source = here.parents[2] / "models"                            # a source checkout
+    dirs = [source] if source.is_dir() else []
     dirs += _ament_share()                                         # colcon: the ament index
     for parent in here.parents:                                    # <prefix>/lib/pythonX/site-packages
         if parent.name == "lib":

@@ -66,7 +66,9 @@ def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0,
             return
 
 
-FLUSH_S = 5.0   # at exit, wait this long at most for subscribers to acknowledge what was sent
+# at exit, wait this long at most for subscribers to acknowledge what was sent (well inside
+# launch's 5 s between SIGINT and SIGTERM)
+FLUSH_S = 2.0
 
 
 def flush(node, timeout_s: float = FLUSH_S) -> bool:
@@ -84,6 +86,8 @@ def flush(node, timeout_s: float = FLUSH_S) -> bool:
     for pub in list(node.publishers):
         left = deadline - time.monotonic()
         try:
+            if not pub.get_subscription_count():
+                continue
             acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(max(left, 0.0) * 1e9)))
         except Exception:   # a publisher already gone (InvalidHandle)
             continue
