@@ -1,8 +1,11 @@
 """ament_python package lgs_wfs_ros: installable by colcon on a ROS 2 Jazzy system and by pip in a venv."""
 
+import shutil
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
+from setuptools.command.install_scripts import install_scripts
 
 package_name = "lgs_wfs_ros"
 
@@ -13,8 +16,29 @@ NODES = {
     "player_node": "lgs_wfs_ros.ros.player_node:main",
 }
 
+CLI = "lgs-wfs"
+
+
+class InstallScripts(install_scripts):
+    """colcon installs the scripts into lib/lgs_wfs_ros (setup.cfg), where `ros2 run` lists
+    every file as an executable of the package; the lgs-wfs CLI is no node, so under colcon
+    it moves to <prefix>/bin (on PATH once the workspace is sourced). pip is unaffected."""
+
+    def run(self):
+        super().run()
+        target = Path(self.install_dir)
+        cli = target / CLI
+        if target.name != package_name or not cli.exists():
+            return
+        bindir = target.parent.parent / "bin"
+        bindir.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(cli), str(bindir / CLI))
+        self.outfiles = [str(bindir / CLI) if Path(f) == cli else f for f in self.outfiles]
+
+
 setup(
     name=package_name,
+    cmdclass={"install_scripts": InstallScripts},
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*"]),
     package_data={package_name: ["data/*.npz", "data/*.json", "config/*.xml"]},
@@ -22,7 +46,8 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
-        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.xml")
+         + glob("config/*.json")),
         ("share/" + package_name + "/models", glob("models/*.onnx") + glob("models/*.json")),
         ("share/" + package_name + "/models/paper_prior", glob("models/paper_prior/*.onnx")
          + glob("models/paper_prior/*.md")),
@@ -64,6 +89,6 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [f"{name} = {target}" for name, target in NODES.items()]
-        + ["lgs-wfs = lgs_wfs_ros.cli:main"],
+        + [f"{CLI} = lgs_wfs_ros.cli:main"],
     },
 )

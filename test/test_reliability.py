@@ -155,15 +155,16 @@ def test_out_of_range_and_wrong_type_parameters_are_refused(ros):
     from lgs_wfs_ros.ros.centroider_node import CentroiderNode
 
     node = ros.add(CentroiderNode(context=ros.context))
-    before = {n: node.get_parameter(n).value for n in ("algorithm", "cmf_update_period", "options")}
-    results = node.set_parameters([Parameter("cmf_update_period", value=0)])
+    before = {n: node.get_parameter(n).value for n in ("algorithm", "cmf.update_period",
+                                                        "cmf.dither")}
+    results = node.set_parameters([Parameter("cmf.update_period", value=0)])
     assert not results[0].successful
     results = node.set_parameters([Parameter("algorithm", value=5)])
     assert not results[0].successful
-    results = node.set_parameters([Parameter("options", value="{not json")])
-    assert not results[0].successful and "JSON" in results[0].reason
+    results = node.set_parameters([Parameter("cmf.reference", value="yesterday")])
+    assert not results[0].successful and "history" in results[0].reason
     results = node.set_parameters_atomically([Parameter("algorithm", value="cmf"),
-                                   Parameter("options", value='{"dither": -1}')])
+                                              Parameter("cmf.dither", value=-1.0)])
     assert not results.successful and "dither" in results.reason
     after = {n: node.get_parameter(n).value for n in before}
     assert after == before and node.centroider.name == "cog"
