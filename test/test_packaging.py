@@ -58,8 +58,9 @@ import importlib.metadata as md  # noqa: E402
 import re  # noqa: E402
 
 PKG = ROOT / "lgs_wfs_ros"
-#: top-level modules the `ros` extra's wheels provide (ros/ only)
-ROS_MODULES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "builtin_interfaces"}
+#: modules the `ros` extra brings (rclpy and ros-jazzy-common-interfaces), imported only by ros/
+ROS_MODULES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "builtin_interfaces",
+               "diagnostic_msgs", "geometry_msgs"}
 #: test-only tools: never imported by the package
 TEST_ONLY = {"aotools", "mcap_ros2", "pytest"}
 
