@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import paper
 from ..optics import geometry, sodium
 from ..optics.spots import SpotModel
 from ..sensor import Sensor
-from . import metrics, paper
+from . import metrics
 from .report import crb_covariances, mean_abs_norm
 
 CASES = {
