@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import dataset, export, recipes
+from . import export, recipes
 
 HEADER = """# Neural-network centroiders in this directory
 
@@ -55,7 +55,8 @@ def models_table(model_dir) -> str:
 def recipe_lines(model_dir) -> str:
     """The recipe line each model was trained with (from its metadata)."""
     return "".join(f"- `{name}`: {recipes.get(name).note}. Recipe: "
-                   f"{_training(model_dir, name).get('recipe_line', '?')}\n"
+                   f"{_training(model_dir, name).get('recipe_line', '?')}. Profiles: "
+                   f"{_training(model_dir, name).get('profiles', '?')}\n"
                    for name in model_names(model_dir))
 
 
@@ -76,12 +77,12 @@ def validation_text(model_dir) -> str:
                         f"{g:.1f} | {a / g:.0%} | {c['cmf']['mean_err_mas']:.1f} | {ps} |")
     if not rows:
         return "No validation recorded.\n"
-    _, held = dataset.measured_split()
     intro = ("Validation: data never seen in training, the paper's one-subaperture geometry (outermost "
              "subaperture; cartesian on the diagonal), photon noise only; "
              + "; ".join(f"{f} frames per case, turbulence-like positions ({s:.2f} px rms per axis, AR(1) "
                          f"over {k:g} frames)" for f, s, k in sorted(setups, key=str))
-             + f". `measured` = held-out measured profiles {held.min()}-{held.max()}. Errors are the mean "
+             + ". `measured` = the measured profiles held out of training (each model's `Profiles` above). "
+             "Errors are the mean "
              "Euclidean |estimate - truth| (mas); CMF = the constrained matched filter with the paper's "
              "history reference; the paper's Table 1 (turbulence, uncentred profile) in the last column.\n")
     return intro + "\n" + "\n".join(head + rows) + "\n"
