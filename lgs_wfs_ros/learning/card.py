@@ -41,11 +41,12 @@ def models_table(model_dir) -> str:
     lines = ["| model | detector | network | trained on | check error (px) | use |",
              "|---|---|---|---|---|---|"]
     for name in model_names(model_dir):
-        tr, rec = _training(model_dir, name), recipes.get(name)
+        tr = _training(model_dir, name)
+        rec = tr.get("recipe") or recipes.get(name).to_dict()      # as trained
         ph = "noise-free" if tr.get("photons") is None else f"{tr['photons']:g} photons"
-        sizes = "-".join(map(str, tr.get("recipe", {}).get("sizes", rec.sizes)))
-        use = "runtime" if rec.shipped else "reproduction only (load by path)"
-        lines.append(f"| `{name}` | {rec.detector} | {sizes} ({tr.get('parameters', '?')} weights), "
+        sizes = "-".join(map(str, rec["sizes"]))
+        use = "runtime" if rec["shipped"] else "reproduction only (load by path)"
+        lines.append(f"| `{name}` | {rec['detector']} | {sizes} ({tr.get('parameters', '?')} weights), "
                      f"{tr.get('optimizer', '?')} | {tr.get('samples', '?')} samples, {ph}"
                      f"{' (quick run)' if tr.get('quick') else ''} | "
                      f"{tr.get('check', {}).get('mean_err_px', float('nan')):.4f} | {use} |")
@@ -54,10 +55,13 @@ def models_table(model_dir) -> str:
 
 def recipe_lines(model_dir) -> str:
     """The recipe line each model was trained with (from its metadata)."""
-    return "".join(f"- `{name}`: {recipes.get(name).note}. Recipe: "
-                   f"{_training(model_dir, name).get('recipe_line', '?')}. Profiles: "
-                   f"{_training(model_dir, name).get('profiles', '?')}\n"
-                   for name in model_names(model_dir))
+    out = []
+    for name in model_names(model_dir):
+        tr = _training(model_dir, name)
+        note = (tr.get("recipe") or {}).get("note") or recipes.get(name).note
+        out.append(f"- `{name}`: {note}. Recipe: {tr.get('recipe_line', '?')}. Profiles: "
+                   f"{tr.get('profiles', '?')}\n")
+    return "".join(out)
 
 
 def validation_text(model_dir) -> str:
@@ -116,7 +120,7 @@ def pupil_text(model_dir) -> str:
 
 
 def render(model_dir) -> str:
-    """The whole card of ``model_dir``."""
+    """The whole card of ``model_dir`` (every model's row from its own metadata)."""
     parts = [HEADER, "## Models\n", models_table(model_dir), recipe_lines(model_dir),
              "## Validation\n", validation_text(model_dir)]
     pup = pupil_text(model_dir)
