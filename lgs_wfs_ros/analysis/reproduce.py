@@ -448,10 +448,6 @@ def _md_table(rows, cols):
     return "\n".join([head, sep] + body)
 
 
-def _pct(x) -> str:
-    return "-" if x is None else f"{x:.0%}"
-
-
 def _vs(ours: float, ref: float, below="at or below", above="above") -> str:
     """Comparison word of two measured numbers (never written by hand)."""
     return below if ours <= ref else above
