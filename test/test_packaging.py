@@ -1,6 +1,11 @@
-"""The package stays a valid ament_python package: package.xml, colcon build, lib/<pkg> executables."""
+"""The package stays a valid ament_python package (package.xml, colcon build, lib/<pkg> executables),
+declares its dependencies where they are used, and keeps its import contracts."""
 
+import ast
+import importlib.metadata as md
+import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -53,10 +58,6 @@ def test_colcon_build_installs_ros2_run_executables(tmp_path):
 
 
 # -- dependencies: declared where they are used ------------------------------------------------
-import ast  # noqa: E402
-import importlib.metadata as md  # noqa: E402
-import re  # noqa: E402
-
 PKG = ROOT / "lgs_wfs_ros"
 #: modules the `ros` extra brings (rclpy and ros-jazzy-common-interfaces), imported only by ros/
 ROS_MODULES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "builtin_interfaces",
@@ -166,7 +167,6 @@ def test_runtime_venv_imports_every_module_and_pip_check_is_clean(tmp_path):
             "print(json.dumps(out))")
     run = subprocess.run([str(py), "-c", code], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
-    import json
     result = json.loads(run.stdout)
     assert len(result) > 40
     for mod, missing in result.items():

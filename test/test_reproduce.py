@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from lgs_wfs_ros.analysis import paper, reproduce
+from lgs_wfs_ros import paper
+from lgs_wfs_ros.analysis import reproduce
 from lgs_wfs_ros.sensor import Sensor
 
 

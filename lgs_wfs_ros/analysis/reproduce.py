@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import paper
 from ..optics import geometry, sodium
 from ..optics.spots import SpotModel
 from ..sensor import Sensor
-from . import metrics, paper
+from . import metrics
 from .report import crb_covariances, mean_abs_norm
 
 CASES = {
@@ -445,10 +446,6 @@ def _md_table(rows, cols):
             cells.append("-" if v is None else (format(v, fmt) if fmt else str(v)))
         body.append("| " + " | ".join(cells) + " |")
     return "\n".join([head, sep] + body)
-
-
-def _pct(x) -> str:
-    return "-" if x is None else f"{x:.0%}"
 
 
 def _vs(ours: float, ref: float, below="at or below", above="above") -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import dataset, export, recipes
+from . import export, recipes
 
 HEADER = """# Neural-network centroiders in this directory
 
@@ -41,11 +41,12 @@ def models_table(model_dir) -> str:
     lines = ["| model | detector | network | trained on | check error (px) | use |",
              "|---|---|---|---|---|---|"]
     for name in model_names(model_dir):
-        tr, rec = _training(model_dir, name), recipes.get(name)
+        tr = _training(model_dir, name)
+        rec = tr.get("recipe") or recipes.get(name).to_dict()      # as trained
         ph = "noise-free" if tr.get("photons") is None else f"{tr['photons']:g} photons"
-        sizes = "-".join(map(str, tr.get("recipe", {}).get("sizes", rec.sizes)))
-        use = "runtime" if rec.shipped else "reproduction only (load by path)"
-        lines.append(f"| `{name}` | {rec.detector} | {sizes} ({tr.get('parameters', '?')} weights), "
+        sizes = "-".join(map(str, rec["sizes"]))
+        use = "runtime" if rec["shipped"] else "reproduction only (load by path)"
+        lines.append(f"| `{name}` | {rec['detector']} | {sizes} ({tr.get('parameters', '?')} weights), "
                      f"{tr.get('optimizer', '?')} | {tr.get('samples', '?')} samples, {ph}"
                      f"{' (quick run)' if tr.get('quick') else ''} | "
                      f"{tr.get('check', {}).get('mean_err_px', float('nan')):.4f} | {use} |")
@@ -54,9 +55,13 @@ def models_table(model_dir) -> str:
 
 def recipe_lines(model_dir) -> str:
     """The recipe line each model was trained with (from its metadata)."""
-    return "".join(f"- `{name}`: {recipes.get(name).note}. Recipe: "
-                   f"{_training(model_dir, name).get('recipe_line', '?')}\n"
-                   for name in model_names(model_dir))
+    out = []
+    for name in model_names(model_dir):
+        tr = _training(model_dir, name)
+        note = (tr.get("recipe") or {}).get("note") or recipes.get(name).note
+        out.append(f"- `{name}`: {note}. Recipe: {tr.get('recipe_line', '?')}. Profiles: "
+                   f"{tr.get('profiles', '?')}\n")
+    return "".join(out)
 
 
 def validation_text(model_dir) -> str:
@@ -76,12 +81,12 @@ def validation_text(model_dir) -> str:
                         f"{g:.1f} | {a / g:.0%} | {c['cmf']['mean_err_mas']:.1f} | {ps} |")
     if not rows:
         return "No validation recorded.\n"
-    _, held = dataset.measured_split()
     intro = ("Validation: data never seen in training, the paper's one-subaperture geometry (outermost "
              "subaperture; cartesian on the diagonal), photon noise only; "
              + "; ".join(f"{f} frames per case, turbulence-like positions ({s:.2f} px rms per axis, AR(1) "
                          f"over {k:g} frames)" for f, s, k in sorted(setups, key=str))
-             + f". `measured` = held-out measured profiles {held.min()}-{held.max()}. Errors are the mean "
+             + ". `measured` = the measured profiles held out of training (each model's `Profiles` above). "
+             "Errors are the mean "
              "Euclidean |estimate - truth| (mas); CMF = the constrained matched filter with the paper's "
              "history reference; the paper's Table 1 (turbulence, uncentred profile) in the last column.\n")
     return intro + "\n" + "\n".join(head + rows) + "\n"
@@ -115,7 +120,7 @@ def pupil_text(model_dir) -> str:
 
 
 def render(model_dir) -> str:
-    """The whole card of ``model_dir``."""
+    """The whole card of ``model_dir`` (every model's row from its own metadata)."""
     parts = [HEADER, "## Models\n", models_table(model_dir), recipe_lines(model_dir),
              "## Validation\n", validation_text(model_dir)]
     pup = pupil_text(model_dir)

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import paper
 from ..optics import sodium
 from ..optics.detector import expose
 from ..optics.geometry import detector_to_local, layout
@@ -38,13 +39,13 @@ from . import dataset, export
 
 CORR_FRAMES = 35.0
 PHOTONS = (316.0, 1000.0)
-PAPER_TABLE1_MAS = {  # Mello et al. 2014, Table 1 (turbulence, uncentred profile)
-    ("polar", 316.0): {"cog": 224.24, "cmf": 143.94, "ann": 55.85},
-    ("polar", 1000.0): {"cog": 224.24, "cmf": 135.00, "ann": 50.12},
-    ("cartesian", 316.0): {"cog": 222.94, "cmf": 224.06, "ann": 117.86},
-    ("cartesian", 1000.0): {"cog": 222.43, "cmf": 220.29, "ann": 114.27},
-}
 VAL_SEED = 424_242
+
+
+def paper_table1_mas(detector: str, photons: float) -> dict:
+    """The paper's Table 1 row (mas per algorithm) of a detector and photon level."""
+    case = next(c for c, (d, n) in paper.TABLE_CASES.items() if d == detector and n == photons)
+    return {alg: paper.table1(alg, case) for alg in paper.ALGORITHMS}
 
 
 def positions(rng: np.random.Generator, n: int, sigma_px: float,
@@ -156,7 +157,7 @@ def validate_model(path, rec, quick: bool = False, progress: bool = True) -> dic
                        "cog": baseline("cog", det, ph, prof, n),
                        "cmf": baseline("cmf", det, ph, prof, n)}
                 if prof == "uncentred":
-                    row["paper_mas"] = PAPER_TABLE1_MAS[(det, ph)]
+                    row["paper_mas"] = paper_table1_mas(det, ph)
                 cases.append(row)
                 if progress:
                     print(f"  {Path(path).stem} {det:9s} {ph:6.0f} ph {prof:9s}: ann "
@@ -241,4 +242,4 @@ def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2
 
 
 __all__ = ["validate_model", "pupil_criterion", "pupil_all_subapertures", "sample_errors",
-           "PUPIL_CRITERION_N", "case_frames", "positions", "errors", "PAPER_TABLE1_MAS", "RINGS"]
+           "PUPIL_CRITERION_N", "case_frames", "positions", "errors", "paper_table1_mas", "RINGS"]

@@ -2,7 +2,9 @@
 
 One data file holds every number the reproduction compares with: Tables 1-3 (mas), Table 2
 (percent of CoG), the averages in the captions of the validation-run figures (pixels) and a
-few figures quoted in the text. This module only reads and reshapes it.
+few figures quoted in the text. This module only reads and reshapes it; it sits beside
+:mod:`.sensor` at the bottom of the import layers, so the reproduction (analysis) and the
+network validation (learning) read the paper from this one place.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
-PATH = Path(__file__).resolve().parent.parent / "data" / "paper_results.json"
+PATH = Path(__file__).resolve().parent / "data" / "paper_results.json"
 
 #: The four cases of Tables 1-2: case -> (detector, photons).
 TABLE_CASES = {1: ("polar", 316), 2: ("polar", 1000), 3: ("cartesian", 316), 4: ("cartesian", 1000)}
