@@ -37,6 +37,9 @@ setup(
         "onnxruntime>=1.17,<2",
         "onnx>=1.15,<2",
         "mcap>=1.1,<2",
+        # chunk codecs, imported by lgs_wfs_ros.bags itself (not only through mcap)
+        "zstandard>=0.21,<1",
+        "lz4>=4,<5",
         "mcap-ros2-support>=0.5,<1",
         "matplotlib>=3.7,<4",
         "tqdm>=4.60,<5",
