@@ -419,7 +419,7 @@ def test_sigkill_leaves_readable_chunks(tmp_path):
 def test_clear_errors_for_wrong_inputs(tmp_path):
     with pytest.raises(BagError, match="no such file"):
         BagReader(tmp_path / "missing.mcap")
-    with pytest.raises(BagError, match="not a file"):
+    with pytest.raises(BagError, match="no .mcap file in it, not a bag file"):
         BagReader(tmp_path)
     (tmp_path / "text.mcap").write_text("hello, this is not a bag at all\n" * 10)
     with pytest.raises(BagError, match="not an MCAP"):

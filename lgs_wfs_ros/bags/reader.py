@@ -187,8 +187,23 @@ def _item(rec):
     return None
 
 
+def bag_file(directory) -> Path:
+    """The .mcap file of a rosbag2 bag directory (``ros2 bag record -s mcap`` and rosbags write
+    ``metadata.yaml`` beside one ``*_0.mcap``). BagError when it holds none or several (a
+    split bag: each file is a bag of its own to these tools)."""
+    d = Path(directory)
+    found = sorted(p for p in d.glob("*.mcap") if p.is_file())
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise BagError(f"{d}: a directory with no .mcap file in it, not a bag file")
+    raise BagError(f"{d}: a bag split into {len(found)} files; open one of them: "
+                   + ", ".join(p.name for p in found))
+
+
 class BagReader:
-    """Read an MCAP bag. path: the .mcap file; strict: see module doc.
+    """Read an MCAP bag. path: the .mcap file, or a rosbag2 directory holding one
+    (:func:`bag_file`); strict: see module doc.
 
     Attributes: path, size, profile, library, complete (footer and summary intact),
     problems (list of str: what a non-strict read skipped)."""
@@ -199,6 +214,8 @@ class BagReader:
         self.problems = []
         if not self.path.exists():
             raise BagError(f"{self.path}: no such file")
+        if self.path.is_dir():
+            self.path = bag_file(self.path)
         if not self.path.is_file():
             raise BagError(f"{self.path}: not a file")
         try:
