@@ -1,0 +1,195 @@
+"""Every centroider option in one table: type, default, range, choices, description.
+
+This is the one set of defaults shared by the Python API, ``lgs-wfs replay``, the demo and the
+centroider node. The node declares one typed ROS parameter per row, named
+``<algorithm>.<option>`` (e.g. ``cmf.reference``), with the row's description, range and
+choices in its ParameterDescriptor; replay and the API pass plain option dicts. Both end in
+:func:`build`.
+
+A row whose ``unset`` value is not None has a sentinel: a parameter holding it means "not
+given" (the class default or the sensor's value applies), because a ROS parameter cannot be
+None. The classes still validate every value they receive; this table is what a user sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from . import make_centroider
+
+
+@dataclass(frozen=True)
+class Option:
+    """One algorithm option.
+
+    Attributes:
+        algorithm: registry name ("cmf").
+        name: the option key the class takes ("reference").
+        default: the value used when not given (its Python type is the parameter's type:
+            bool, int, float or str); equals ``unset`` for sentinel rows.
+        description: one sentence, with the unit.
+        low, high: inclusive range for numbers (None: unbounded).
+        choices: the allowed values for strings (empty: any).
+        unset: the sentinel meaning "not given", or None when every value is real.
+        read_only: True when the value can only be set at start-up.
+    """
+
+    algorithm: str
+    name: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple = field(default_factory=tuple)
+    unset: Any = None
+    read_only: bool = False
+
+    @property
+    def parameter(self) -> str:
+        """The ROS parameter name, ``<algorithm>.<option>``."""
+        return f"{self.algorithm}.{self.name}"
+
+    @property
+    def kind(self) -> type:
+        """bool, int, float or str: the parameter's type."""
+        return type(self.default)
+
+
+def _rows(algorithm: str, *rows: tuple) -> tuple[Option, ...]:
+    return tuple(Option(algorithm, *row[:3], **(row[3] if len(row) > 3 else {})) for row in rows)
+
+
+_SENSOR = {"unset": -1.0, "low": -1.0}
+_HISTORY = (
+    ("reference", "history", "Where the reference image comes from: the mean of recent frames "
+     "(history), a static image given in Python (static) or a model spot at the subaperture "
+     "centre (model).", {"choices": ("history", "static", "model")}),
+    ("history", 5, "Frames averaged into a history reference.", {"low": 1, "high": 10000}),
+    ("include_current", True, "Include the current frame in the history reference."),
+    ("update_period", 1, "Frames between reference updates.", {"low": 1, "high": 100000}),
+    ("sodium_fwhm_m", 10e3, "Sodium layer FWHM of the model reference, metres.",
+     {"low": 0.0, "high": 100e3}),
+)
+
+OPTIONS: dict[str, tuple[Option, ...]] = {
+    "cog": _rows("cog", ("background", -1.0, "Background subtracted per pixel, counts "
+                         "(-1: the sensor's background_e).", {**_SENSOR, "high": 1e6})),
+    "tcog": _rows(
+        "tcog",
+        ("background", -1.0, "Background subtracted per pixel, counts (-1: the sensor's).",
+         {**_SENSOR, "high": 1e6}),
+        ("threshold", -1.0, "Threshold in counts (-1: not used). Give one of threshold, "
+         "threshold_rn, threshold_frac.", {**_SENSOR, "high": 1e6}),
+        ("threshold_rn", -1.0, "Threshold in units of the read noise (-1: not used; 3 when "
+         "no threshold is given).", {**_SENSOR, "high": 1e3}),
+        ("threshold_frac", -1.0, "Threshold as a fraction of the subaperture's peak (-1: not "
+         "used).", {**_SENSOR, "high": 1.0}),
+        ("mode", "subtract", "Above the threshold, subtract it from each pixel (subtract) or "
+         "only zero the pixels below it (zero).", {"choices": ("subtract", "zero")}),
+    ),
+    "wcog": _rows(
+        "wcog",
+        ("background", -1.0, "Background subtracted per pixel, counts (-1: the sensor's).",
+         {**_SENSOR, "high": 1e6}),
+        ("sodium_fwhm_m", 10e3, "Sodium layer FWHM the weight is shaped for, metres.",
+         {"low": 0.0, "high": 100e3}),
+        ("gain", "model", "How the weighting's gain loss is corrected.",
+         {"choices": ("model", "analytic", "none")}),
+    ),
+    "cmf": _rows(
+        "cmf", *_HISTORY,
+        ("dither", 0.02, "Shift used to build the filter's derivative images, pixels.",
+         {"low": 1e-4, "high": 1.0}),
+        ("constrained", True, "Constrain the filter to unit gain and zero cross-talk."),
+        ("constraint_px", 1, "Half-width of the constraint's shift grid, pixels.",
+         {"low": 1, "high": 4}),
+        ("weighting", "image", "Noise weighting of the filter: the reference image's own "
+         "variance (image) or the model spot's (model).", {"choices": ("image", "model")}),
+        ("read_noise_e", -1.0, "Read noise in the weighting, e- (-1: the sensor's).",
+         {**_SENSOR, "high": 1e3}),
+        ("background", -1.0, "Background in the weighting, counts (-1: the sensor's).",
+         {**_SENSOR, "high": 1e6}),
+        ("var_floor", 1.0, "Smallest pixel variance in the weighting, counts^2.",
+         {"low": 1e-6, "high": 1e6}),
+        ("derivative", "fourier", "How derivative images are made.",
+         {"choices": ("fourier", "dither")}),
+        ("linearize", False, "Calibrate the filter's non-linear response once and invert it "
+         "every frame (exact to 1e-3 px within +-1 px)."),
+        ("linearize_extent", 1.1, "Half-width of the calibrated response, pixels.",
+         {"low": 0.1, "high": 4.0}),
+    ),
+    "corr": _rows(
+        "corr", *_HISTORY,
+        ("peak", "gauss", "Sub-pixel peak finder.", {"choices": ("parabola", "gauss", "cog")}),
+        ("threshold", 0.0, "Correlation threshold as a fraction of the peak, [0, 1).",
+         {"low": 0.0, "high": 0.999}),
+        ("padding", 2, "Zero-padding factor of the correlation.", {"low": 1, "high": 2}),
+        ("subtract_min", False, "Subtract the correlation's minimum before the peak finder."),
+        ("background", -1.0, "Background subtracted per pixel, counts (-1: the sensor's).",
+         {**_SENSOR, "high": 1e6}),
+    ),
+    "ann": _rows("ann", ("model", "", "ONNX model: a name in models/ or a path (empty: the "
+                                       "default model).", {"unset": ""})),
+}
+
+
+def option(algorithm: str, name: str) -> Option:
+    """The row for ``algorithm``'s option ``name``; ValueError naming the allowed ones."""
+    rows = {o.name: o for o in OPTIONS.get(algorithm, ())}
+    if name not in rows:
+        raise ValueError(f"{algorithm}: unknown option {name!r}; allowed: {sorted(rows)}")
+    return rows[name]
+
+
+def coerce(opt: Option, value):
+    """``value`` as the option's type, range and choices checked; ValueError with the reason.
+
+    An integer is taken where a float is due (``photons:=1000`` style); nothing else is
+    converted.
+    """
+    kind = opt.kind
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ValueError(f"{opt.parameter} must be {kind.__name__}, got {value!r}")
+    if opt.unset is not None and value == opt.unset:
+        return value
+    if opt.choices and value not in opt.choices:
+        raise ValueError(f"{opt.parameter} must be one of {', '.join(map(str, opt.choices))}, "
+                         f"got {value!r}")
+    if opt.low is not None and value < opt.low or opt.high is not None and value > opt.high:
+        raise ValueError(f"{opt.parameter} must be in [{opt.low}, {opt.high}], got {value!r}")
+    return value
+
+
+def from_parameters(algorithm: str, values: Mapping[str, Any]) -> dict:
+    """Options for ``algorithm`` from ``{"<algorithm>.<option>": value}`` (other keys are
+    ignored); values equal to their sentinel are left out."""
+    out = {}
+    for opt in OPTIONS[algorithm]:
+        if opt.parameter in values:
+            value = coerce(opt, values[opt.parameter])
+            if opt.unset is None or value != opt.unset:
+                out[opt.name] = value
+    return out
+
+
+def defaults(algorithm: str) -> dict:
+    """``{option: default}`` for ``algorithm``, sentinel rows left out."""
+    return {o.name: o.default for o in OPTIONS[algorithm] if o.unset is None}
+
+
+def build(algorithm: str, sensor, options: Mapping[str, Any] | None = None):
+    """The centroider ``algorithm`` with ``options`` over this table's defaults.
+
+    Raises:
+        ValueError: unknown algorithm, unknown option or bad value, with the reason.
+    """
+    if algorithm not in OPTIONS:
+        raise ValueError(f"unknown centroiding algorithm {algorithm!r}; "
+                         f"choose one of {', '.join(OPTIONS)}")
+    given = dict(options or {})
+    for name in given:
+        option(algorithm, name)
+    return make_centroider(algorithm, sensor, **{**defaults(algorithm), **given})
