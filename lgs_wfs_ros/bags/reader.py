@@ -52,6 +52,10 @@ class _Exact(ReadDataStream):
     past its record is corruption, not a shorter string (mcap's ReadDataStream returns what
     is there)."""
 
+    def __init__(self, body):
+        super().__init__(io.BytesIO(body))
+        self._limit = len(body)
+
     def read(self, length):
         if length > self._limit - self.count:
             raise _Corrupt(f"a field of {length} bytes runs past its record "
@@ -59,17 +63,11 @@ class _Exact(ReadDataStream):
         return super().read(length)
 
 
-def _exact(body):
-    s = _Exact(io.BytesIO(body))
-    s._limit = len(body)
-    return s
-
-
 _RECORDS = {fmt.OP_HEADER: records.Header, fmt.OP_FOOTER: records.Footer, fmt.OP_SCHEMA: records.Schema,
             fmt.OP_CHANNEL: records.Channel, fmt.OP_CHUNK_INDEX: records.ChunkIndex, fmt.OP_METADATA: records.Metadata,
             fmt.OP_METADATA_INDEX: records.MetadataIndex, fmt.OP_STATISTICS: records.Statistics}
 # what mcap's record readers raise on bytes that are not a record (besides our _Corrupt)
-_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, OverflowError, KeyError)
+_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, OverflowError)
 
 
 _MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, publish time
@@ -120,7 +118,7 @@ def parse_record(op, body):
     cls = _RECORDS.get(op)
     if cls is None:
         return None
-    stream = _exact(body)
+    stream = _Exact(body)
     try:
         return cls.read(stream)
     except _Corrupt:
