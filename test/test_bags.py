@@ -1,9 +1,9 @@
 """MCAP bags in rosbag2 layout: CDR parity with rclpy, schema text, mcap-ros2 decoding, rosbag2
-metadata, overwrite refusal, truncation/SIGKILL recovery, full disk, fuzz, join by stamp."""
+metadata, overwrite refusal, truncation/SIGKILL recovery, full disk, join by stamp (the fuzz is
+test/test_bag_fuzz.py)."""
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -419,7 +419,7 @@ def test_sigkill_leaves_readable_chunks(tmp_path):
 def test_clear_errors_for_wrong_inputs(tmp_path):
     with pytest.raises(BagError, match="no such file"):
         BagReader(tmp_path / "missing.mcap")
-    with pytest.raises(BagError, match="not a file"):
+    with pytest.raises(BagError, match="no .mcap file in it, not a bag file"):
         BagReader(tmp_path)
     (tmp_path / "text.mcap").write_text("hello, this is not a bag at all\n" * 10)
     with pytest.raises(BagError, match="not an MCAP"):
@@ -453,41 +453,6 @@ def test_corrupt_chunk_is_reported_or_skipped(tmp_path):
         n = len(list(r.messages()))
         assert n == ends[-1][1] - (ends[1][1] - ends[0][1])                 # all but chunk 2
         assert any("CRC" in s for s in r.problems)
-
-
-def test_fuzz_truncations_and_byte_flips_only_raise_bag_error(tmp_path):
-    p = tmp_path / "small.mcap"
-    _write_bag(p, n=6, chunk_size=3000)
-    data = p.read_bytes()
-    rng = random.Random(1234)
-    t = tmp_path / "fuzz.mcap"
-    outcomes = {"ok": 0, "BagError": 0}
-    for trial in range(150):
-        buf = bytearray(data)
-        if trial % 3 == 0:
-            buf = buf[:rng.randrange(len(buf))]
-        else:
-            for _ in range(rng.randint(1, 4)):
-                buf[rng.randrange(len(buf))] ^= 1 << rng.randrange(8)
-        t.write_bytes(bytes(buf))
-        for strict in (True, False):
-            try:
-                with BagReader(t, strict=strict) as r:
-                    r.topics()
-                    r.summary()
-                    r.metadata()
-                    list(r.messages())
-                    topics = r.topics()
-                    for topic, (ty, _) in topics.items():
-                        if ty.endswith("Image"):
-                            r.images(topic)
-                        elif ty.endswith("String"):
-                            r.strings(topic)
-                outcomes["ok"] += 1
-            except BagError as err:
-                assert str(err) and "Traceback" not in str(err)
-                outcomes["BagError"] += 1
-    assert outcomes["BagError"] > 20 and outcomes["ok"] > 20
 
 
 # --- full disk -----------------------------------------------------------------------------

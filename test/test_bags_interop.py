@@ -179,6 +179,15 @@ def test_rosbags_bag(contract_bag, tmp_path, capsys):
     with BagReader(copy) as r:
         assert "rosbags" in r.library
     _check_copy(copy, contract_bag, capsys, tmp_path)
+    # the bag directory (metadata.yaml + one .mcap), as ros2 bag record leaves it, opens too
+    assert (copy.parent / "metadata.yaml").is_file()
+    with BagReader(copy.parent) as r:
+        assert r.path == copy
+    assert cli.main(["report", str(copy.parent), "--json"]) == 0
+    assert "cog:tcog" in json.loads(capsys.readouterr().out)["algorithms"]
+    (copy.parent / "second_1.mcap").write_bytes(copy.read_bytes())
+    with pytest.raises(BagError, match="split into 2 files"):
+        BagReader(copy.parent)
 
 
 def test_channel_defined_in_an_unwanted_chunk(tmp_path):

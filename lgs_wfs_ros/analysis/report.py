@@ -223,9 +223,8 @@ def _ratios_to_cog(algs: dict, errs: dict) -> None:
     cog segment is the reference); on each one's own frames when they share none."""
     ref = next((k for k, v in algs.items() if v["algorithm"] == "cog"), None)
     for label, v in algs.items():
-        v["ratio_to_cog"] = v["mae_ratio_to_cog"] = None
+        v["ratio_to_cog"] = v["mae_ratio_to_cog"] = v["ratio_to_cog_basis"] = None
         if ref is None:
-            v["ratio_to_cog_basis"] = "no cog in the bag"
             continue
         common = np.intersect1d(errs[label][0], errs[ref][0])
         if len(common):

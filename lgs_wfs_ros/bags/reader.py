@@ -52,6 +52,10 @@ class _Exact(ReadDataStream):
     past its record is corruption, not a shorter string (mcap's ReadDataStream returns what
     is there)."""
 
+    def __init__(self, body):
+        super().__init__(io.BytesIO(body))
+        self._limit = len(body)
+
     def read(self, length):
         if length > self._limit - self.count:
             raise _Corrupt(f"a field of {length} bytes runs past its record "
@@ -59,17 +63,11 @@ class _Exact(ReadDataStream):
         return super().read(length)
 
 
-def _exact(body):
-    s = _Exact(io.BytesIO(body))
-    s._limit = len(body)
-    return s
-
-
 _RECORDS = {fmt.OP_HEADER: records.Header, fmt.OP_FOOTER: records.Footer, fmt.OP_SCHEMA: records.Schema,
             fmt.OP_CHANNEL: records.Channel, fmt.OP_CHUNK_INDEX: records.ChunkIndex, fmt.OP_METADATA: records.Metadata,
             fmt.OP_METADATA_INDEX: records.MetadataIndex, fmt.OP_STATISTICS: records.Statistics}
 # what mcap's record readers raise on bytes that are not a record (besides our _Corrupt)
-_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, OverflowError, KeyError)
+_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, OverflowError)
 
 
 _MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, publish time
@@ -120,7 +118,7 @@ def parse_record(op, body):
     cls = _RECORDS.get(op)
     if cls is None:
         return None
-    stream = _exact(body)
+    stream = _Exact(body)
     try:
         return cls.read(stream)
     except _Corrupt:
@@ -187,8 +185,23 @@ def _item(rec):
     return None
 
 
+def bag_file(directory) -> Path:
+    """The .mcap file of a rosbag2 bag directory (``ros2 bag record -s mcap`` and rosbags write
+    ``metadata.yaml`` beside one ``*_0.mcap``). BagError when it holds none or several (a
+    split bag: each file is a bag of its own to these tools)."""
+    d = Path(directory)
+    found = sorted(p for p in d.glob("*.mcap") if p.is_file())
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise BagError(f"{d}: a directory with no .mcap file in it, not a bag file")
+    raise BagError(f"{d}: a bag split into {len(found)} files; open one of them: "
+                   + ", ".join(p.name for p in found))
+
+
 class BagReader:
-    """Read an MCAP bag. path: the .mcap file; strict: see module doc.
+    """Read an MCAP bag. path: the .mcap file, or a rosbag2 directory holding one
+    (:func:`bag_file`); strict: see module doc.
 
     Attributes: path, size, profile, library, complete (footer and summary intact),
     problems (list of str: what a non-strict read skipped)."""
@@ -199,6 +212,8 @@ class BagReader:
         self.problems = []
         if not self.path.exists():
             raise BagError(f"{self.path}: no such file")
+        if self.path.is_dir():
+            self.path = bag_file(self.path)
         if not self.path.is_file():
             raise BagError(f"{self.path}: not a file")
         try:
