@@ -29,6 +29,15 @@ def test_paper_case_at_700_hz_loses_nothing_and_matches_the_library(tmp_path):
     bag = tmp_path / "e2e.mcap"
     counts = run_case("single", bag, frames, 700.0, algs, frame_every=1)
     assert check_complete(counts, frames, 1, algs) == []
+    # every node's log, start to shutdown: no warning, no error, no rosout failure
+    logs = sorted((tmp_path / "e2e_logs").glob("*.log"))
+    assert len(logs) == len(algs) + 2
+    for log in logs:
+        text = log.read_text()
+        bad = [line for line in text.splitlines()
+               if any(w in line for w in ("[WARN]", "[ERROR]", "Traceback", "Failed to publish"))]
+        assert not bad, f"{log.name}:\n" + "\n".join(bad)
+        assert "[INFO]" in text, log.name
 
     reader = bags.BagReader(bag)
     stamps, images = reader.images("/wfs/frame")

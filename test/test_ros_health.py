@@ -165,3 +165,18 @@ def test_foxglove_layout_opens_what_the_demo_graph_publishes(ros):
     assert topics == expect
     # every panel of the configuration is placed in the layout tree
     assert set(layout["configById"]) == set(re.findall(r'"(\w+![\w]+)"', json.dumps(layout["layout"])))
+
+
+def test_recorder_counts_messages_lost_before_it(ros, tmp_path):
+    """Gaps in a publisher's sequence numbers are counted per topic (logged once); a
+    sequence that starts again (a new publisher) is not a loss."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+    rec = ros.add(RecorderNode(context=ros.context, namespace="gaps", parameter_overrides=[
+        Parameter("output", value=str(tmp_path / "g.mcap")), Parameter("discover", value=False)]))
+    for seq in (1, 2, 5, 6, 9, 1, 2):
+        rec._count_gap("/gaps/slopes", {"publication_sequence_number": seq})
+    rec._count_gap("/gaps/slopes", {})                       # no number: ignored
+    assert rec.gaps == {"/gaps/slopes": 4}
+    assert rec.health.counts == {"messages lost before the recorder on /gaps/slopes": 2}
+    rec.close()

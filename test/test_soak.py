@@ -103,6 +103,22 @@ def final_counts(log: str) -> dict:
     return json.loads(found[-1])
 
 
+def wait_until_idle(log, quiet_s: float = 3.0, timeout_s: float = 60.0) -> None:
+    """Until the centroider's counter line (written every log_period_s, only when the
+    counters changed) has not changed for ``quiet_s``: its frame queue is drained. A fixed
+    wait was not enough when a loaded machine made the centroider slower than 100 frames
+    in 2 s (the last frames were still queued when it was interrupted)."""
+    last, since, deadline = None, time.monotonic(), time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        lines = re.findall(r"frames received .*", log())
+        now = lines[-1] if lines else None
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+        time.sleep(0.25)
+
+
 def run_soak(tmp_path: Path):
     from lgs_wfs_ros.ros.graph import Graph, NodeSpec
 
@@ -113,7 +129,7 @@ def run_soak(tmp_path: Path):
         NodeSpec("recorder_node", "wfs", {
             "output": str(out), "discover": False, "frame_every": 0, "compression": "none",
             "topics": ["/wfs/true_slopes", "/wfs/sensor", "/cog/slopes", "/cog/centroider"]}),
-        NodeSpec("centroider_node", "cog", {"algorithm": "cog", "log_period_s": 10.0},
+        NodeSpec("centroider_node", "cog", {"algorithm": "cog", "log_period_s": 0.5},
                  {"frame": "/wfs/frame", "sensor": "/wfs/sensor"}),
         NodeSpec("player_node", "wfs", {"bag": str(bag), "rate": str(RATE_HZ), "loop": True,
                                         "wait_for": ["/unused/slopes"], "start_delay_s": 4.0}),
@@ -127,6 +143,8 @@ def run_soak(tmp_path: Path):
         for key in (PLAYER, CENTROIDER):                 # producers first, each drained
             g.procs[key].send_signal(signal.SIGINT)
             assert g.wait(key, 20) is not None, g.log(key)[-2000:]
+            if key == PLAYER:                            # the centroider's queue (100 frames)
+                wait_until_idle(lambda: g.log(CENTROIDER))
             time.sleep(2.0)
         codes = g.stop(timeout=20)
         logs = {k: g.log(k) for k in (PLAYER, CENTROIDER, RECORDER)}

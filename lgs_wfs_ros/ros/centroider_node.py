@@ -107,9 +107,11 @@ class CentroiderNode(Node):
                 raise
             # e.g. a polar-only model on the default (cartesian) sensor: the real sensor
             # description usually arrives on the sensor topic a moment later.
+            # normal at start-up, hence INFO and an OK state; an ERROR if the sensor that
+            # comes cannot run it either (_on_sensor)
             self._no_centroider(f"{self.get_parameter('algorithm').value} cannot run on the "
                                 f"default sensor, waiting for one on the sensor topic: {exc}",
-                                health.WARN)
+                                health.OK)
 
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
