@@ -160,6 +160,38 @@ def test_recorder_writes_a_readable_bag(ros, tmp_path):
     np.testing.assert_array_equal(images[3], frames[3])
 
 
+def test_recorder_keeps_names_not_paths_of_descriptions(ros, tmp_path):
+    """A centroider description naming a model by its absolute path is recorded with the
+    file name only (bags carry names, not this machine's paths); other fields untouched."""
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+
+    out = tmp_path / "rec.mcap"
+    rig = Rig(ros)
+    pub = rig.node.create_publisher(String, "/wfs/centroider", qos.LATCHED)
+    desc = {"algorithm": "ann", "model_path": "/home/someone/work/models/ann_1k.onnx",
+            "topic": "/wfs/frame"}
+    pub.publish(String(data=json.dumps(desc)))
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("frames", value=2),
+        Parameter("linger_s", value=0.5),
+        Parameter("topics", value=["/wfs/frame", "/wfs/sensor", "/wfs/centroider"])]))
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 1, timeout=10)
+    time.sleep(0.5)
+    for k in range(2):
+        rig.send(small_frame(SMALL, k), 1000 + k)
+        time.sleep(0.02)
+    assert wait_for(lambda: rec.done, timeout=15)
+    texts = [t for _stamp, t in bags.BagReader(out).strings("/wfs/centroider")]
+    assert texts, "the description was not recorded"
+    recorded = json.loads(texts[-1])
+    assert "/home/someone" not in texts[-1]
+    assert recorded["algorithm"] == "ann" and recorded["topic"] == "/wfs/frame"
+    assert "ann_1k.onnx" in json.dumps(recorded)
+
+
 def test_recorder_sizes_its_frame_queue_for_the_sensor(ros, tmp_path):
     """A 6 kHz single-subaperture sensor: the recorder's frame subscription gets the
     840-frame queue, and a burst of 500 frames sent back to back is recorded whole."""

@@ -34,6 +34,7 @@ from std_msgs.msg import String
 
 from .. import bags
 from ..bags import subapertures as subaps
+from ..bags.portable import STRING, portable_cdr
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from .spinning import run_node, take_queued
@@ -264,6 +265,8 @@ class RecorderNode(Node):
             keep = True
             if kind == "sensor":
                 self._on_sensor(topic, cdr)
+            if kind in ("sensor", "centroider"):   # bags carry names, not this machine's paths
+                cdr = portable_cdr(STRING, cdr)
         if keep:
             received = int(info.get("received_timestamp", 0)) or time.time_ns()
             source = int(info.get("source_timestamp", 0)) or received
