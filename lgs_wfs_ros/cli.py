@@ -11,6 +11,8 @@ import sys
 
 
 def _demo(args):
+    from .extras import require
+    require("rclpy", "ros", "lgs-wfs demo")
     from .ros.demo import run_demo
     return run_demo(out_dir=args.out_dir, single_frames=args.frames, full_frames=args.full_frames,
                     full_rate_hz=args.full_rate, algorithms=args.algorithms.split(","))
@@ -41,14 +43,9 @@ def _reproduce(args):
 
 
 def _train(args):
-    from .extras import MissingExtra
     from .learning import train_model
-    try:
-        train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
-                    quick=args.quick, force=args.force)
-    except MissingExtra as exc:
-        print(f"lgs-wfs train: {exc}", file=sys.stderr)
-        return 2
+    train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
+                quick=args.quick, force=args.force)
     return 0
 
 
@@ -152,12 +149,10 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     from .bags import BagError
+    from .extras import MissingExtra
     try:
         return int(args.func(args) or 0)
-    except BagError as exc:
-        print(f"lgs-wfs {args.verb}: {exc}", file=sys.stderr)
-        return 2
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+    except (BagError, MissingExtra, ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"lgs-wfs {args.verb}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

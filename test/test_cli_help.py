@@ -38,3 +38,21 @@ def test_help_prints_the_examples(capsys):
         parser().parse_args(["demo", "--help"])
     out = capsys.readouterr().out
     assert "examples:" in out and "--full-frames" in out and "lgs-wfs demo --frames" in out
+
+
+def test_demo_without_rclpy_names_the_ros_extra(tmp_path):
+    """``lgs-wfs demo`` in a venv without the ``ros`` extra: exit 2, one line naming it."""
+    import subprocess
+    import sys
+    block = ("import sys\n"
+             "class Block:\n"
+             "    def find_spec(self, name, path=None, target=None):\n"
+             "        if name == 'rclpy' or name.startswith('rclpy.'):\n"
+             "            raise ImportError('rclpy blocked')\n"
+             "sys.meta_path.insert(0, Block())\n"
+             "from lgs_wfs_ros import cli\n"
+             f"sys.exit(cli.main(['demo', '--out-dir', {str(tmp_path)!r}]))")
+    out = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr
+    assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert "'ros' extra" in out.stderr
