@@ -46,6 +46,10 @@ setup(
         # ROS 2 Jazzy from PyPI wheels, for a plain venv; leave it out on a system ROS install.
         "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6"],
         "train": ["torch==2.13.0"],
+        # zero-copy frames between the nodes of one host (frame_transport: shm)
+        "shm": ["iceoryx2>=0.10,<0.11"],
+        # compiled single-pass centroid kernels and the fast simulator (numpy fallback without)
+        "fast": ["numba>=0.68,<0.69"],
         # colcon builds the package in a test, as a ROS install would.
         "test": ["pytest>=8,<10", "colcon-core>=0.15", "colcon-ros>=0.4",
                  "colcon-python-setup-py>=0.2.8", "colcon-package-selection>=0.2"],
