@@ -22,6 +22,7 @@ from .. import bags
 from ..centroiding import ALGORITHMS, make_centroider
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
+from ..transport import TRANSPORTS, frames as frame_transport, shm
 from .spinning import DRAIN, run_node, take_queued
 from . import parameters, qos
 
@@ -33,11 +34,15 @@ class FrameCounters:
 
     def __init__(self):
         self.received = self.processed = self.dropped = self.rejected = 0
+        self.computed = self.published = 0      # centroids computed, slopes published
+        self.transport_lost = 0                 # shm: frames sent that never arrived (sequence)
         self.last_reason = ""
 
     def as_dict(self) -> dict:
         return {"received": self.received, "processed": self.processed,
-                "dropped": self.dropped, "rejected": self.rejected}
+                "dropped": self.dropped, "rejected": self.rejected,
+                "taken": self.received, "computed": self.computed,
+                "published": self.published, "transport_lost": self.transport_lost}
 
 # frames up to this many pixels (the paper's single subaperture, small test pupils) are
 # centroided in batches when several are queued
@@ -62,6 +67,9 @@ class CentroiderNode(Node):
                            "arrives on the sensor topic (empty: the default sensor).")
         parameters.declare(self, "log_period_s", 5.0, "Seconds between counter log lines.",
                            low=0.1, high=3600.0)
+        parameters.declare(self, "frame_transport", "ros", "Where frames come from: 'ros' (the "
+                           "frame topic) or 'shm' (iceoryx2 shared memory, read in place).",
+                           choices=TRANSPORTS, read_only=True)
 
         self.counters = FrameCounters()
         self._lock = threading.Lock()
@@ -84,7 +92,14 @@ class CentroiderNode(Node):
 
         self._slopes_pub = self.create_publisher(Image, "slopes", qos.SLOPES)
         self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
-        self._frame_sub = None
+        self._frame_sub = self._inlet = None
+        self._sensor_id = shm.sensor_id(self.sensor)
+        if self.get_parameter("frame_transport").value == "shm":
+            try:
+                self._inlet = frame_transport.FrameInlet(self.resolve_topic_name("frame"),
+                                                         self._on_shm_frame)
+            except shm.ShmUnavailable as exc:
+                raise ValueError(str(exc)) from exc
         self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
         self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
@@ -171,12 +186,15 @@ class CentroiderNode(Node):
         self._subscribe_frames(sensor)
         with self._lock:
             self.sensor, self.layout, self.centroider = sensor, geometry.layout(sensor), centroider
+            self._sensor_id = shm.sensor_id(sensor)
             self._last_stamp = None
         self._announce("new sensor")
 
     def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
         frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
+        if self._inlet is not None:       # frames come through shared memory
+            return
         profile = qos.frame_qos(sensor)
         if self._frame_sub is not None:
             if self._frame_sub.qos_profile.depth == profile.depth:
@@ -200,7 +218,26 @@ class CentroiderNode(Node):
         batch = [self._accept(cdr)]
         for queued in take_queued(self._frame_sub, Image, DRAIN):
             batch.append(self._accept(queued[0]))
-        batch = [b for b in batch if b is not None]
+        self._centroid_and_publish([b for b in batch if b is not None])
+
+    def _on_shm_frame(self, stamp_ns: int, image, sensor_id: int):
+        """One frame read in place from shared memory (the inlet's thread)."""
+        self.counters.received += 1
+        self.counters.transport_lost = self._inlet.lost
+        if sensor_id and sensor_id != self._sensor_id:
+            self._reject(f"frame of another sensor (id {sensor_id:x}, expected "
+                         f"{self._sensor_id:x}): its description has not arrived yet")
+            return
+        accepted = self._check(stamp_ns, image)
+        if accepted is not None:
+            try:
+                self._centroid_and_publish([accepted])
+            except Exception:      # a publish after SIGINT shut the context down
+                if self.context.ok():
+                    raise
+
+    def _centroid_and_publish(self, batch):
+        """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order."""
         if not batch:
             return
         with self._lock:
@@ -222,9 +259,11 @@ class CentroiderNode(Node):
                         self._reject(f"{centroider.name} failed on this frame: {exc!r}")
                         continue
                 results.append((stamp_ns, geometry.slopes_to_grid(s, layout)))
+        self.counters.computed += len(results)
         for stamp_ns, grid in results:
             self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
             self.counters.processed += 1
+            self.counters.published += 1
 
     def _accept(self, cdr: bytes):
         """Decode and check one frame: ``(stamp_ns, image)``, or None (counted as rejected)."""
@@ -237,6 +276,11 @@ class CentroiderNode(Node):
         if encoding not in ("mono16", "32FC1"):
             self._reject(f"encoding {encoding!r}, expected mono16 or 32FC1")
             return None
+        return self._check(stamp_ns, image)
+
+    def _check(self, stamp_ns: int, image):
+        """``(stamp_ns, image)`` if the frame fits the sensor and comes after the last one;
+        None otherwise (counted as rejected; stamp gaps counted as dropped)."""
         with self._lock:
             if image.shape != self.sensor.frame_shape:
                 self._reject(f"shape {image.shape}, the sensor expects {self.sensor.frame_shape}")
@@ -261,6 +305,8 @@ class CentroiderNode(Node):
 
 
 def _final_counts(node) -> None:
+    if node._inlet is not None:
+        node._inlet.close()
     print(f"centroider_node: final counts {json.dumps(node.counters.as_dict())}", flush=True)
 
 

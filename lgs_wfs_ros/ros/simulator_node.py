@@ -29,6 +29,8 @@ from .. import bags
 from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
+from ..transport import shm
+from .frame_transport import declare_frame_transport, make_outlet
 from .spinning import run_node
 from . import parameters, qos
 
@@ -95,6 +97,7 @@ class SimulatorNode(Node):
                            "listen to frame before the first frame.", low=0, high=1000)
         parameters.declare(self, "start_delay_s", 0.0, "Extra wait before the first frame, s.",
                            low=0.0, high=600.0)
+        declare_frame_transport(self)
 
         self._lock = threading.Lock()
         self._pending = None
@@ -103,6 +106,7 @@ class SimulatorNode(Node):
         self.add_post_set_parameters_callback(self._apply)
 
         self._frame_pub = self.create_publisher(Image, "frame", qos.frame_qos(self.sim.sensor))
+        self._outlet = make_outlet(self, self._frame_pub, self.sim.sensor)
         self._truth_pub = self.create_publisher(Image, "true_slopes", qos.SLOPES)
         self._sensor_pub = self.create_publisher(String, "sensor", qos.LATCHED)
         self.published = 0
@@ -160,7 +164,7 @@ class SimulatorNode(Node):
     # -- publishing -------------------------------------------------------------------
     def _wait_to_start(self):
         need = self.get_parameter("wait_for_subscribers").value
-        while need and self._frame_pub.get_subscription_count() < need and not self._stop.is_set():
+        while need and self._outlet.subscriber_count() < need and not self._stop.is_set():
             time.sleep(0.05)
         delay = self.get_parameter("start_delay_s").value
         self._stop.wait(delay)
@@ -189,6 +193,7 @@ class SimulatorNode(Node):
                 sim = self.sim
                 if sim is not source:                      # new parameters: drop the old batch
                     queue, source = [], sim
+                    sensor_id = shm.sensor_id(sim.sensor)
                 if not queue:
                     queue = self._make_frames(sim, budget - self.published if budget else None)
                 frame = queue.pop(0)
@@ -197,7 +202,7 @@ class SimulatorNode(Node):
             if first is None:          # the schedule starts with the first frame, not its set-up
                 due = time.monotonic()
             truth = geometry.slopes_to_grid(frame.truth, layout)
-            self._frame_pub.publish(bags.encode_image(frame.frame, stamp_ns))
+            self._outlet.publish(frame.frame, stamp_ns, sensor_id, stop=self._stop.is_set)
             self._truth_pub.publish(bags.encode_image(truth, stamp_ns))
             self.published += 1
             last = time.monotonic()
@@ -232,6 +237,7 @@ class SimulatorNode(Node):
     def stop(self):
         self._stop.set()
         self._thread.join(timeout=10)
+        self._outlet.close()
 
 
 def _published(node) -> bool:
