@@ -168,7 +168,7 @@ class Simulator:
         ss = np.random.SeedSequence(self.config.seed)
         turb_ss, prof_ss, noise_ss = ss.spawn(3)
         self._noise_rng = np.random.default_rng(noise_ss)
-        self._profile_rng = np.random.default_rng(prof_ss)
+        self._profile_ss = prof_ss
         self._turb_seed = turb_ss
         self._turb = displacements
         self._model = sodium_model
@@ -212,7 +212,11 @@ class Simulator:
         return self._model
 
     def profile_at(self, index: int) -> tuple[np.ndarray, object]:
-        """``(density (K,), key)`` for frame ``index``; ``key`` changes when it does."""
+        """``(density (K,), key)`` for frame ``index``; ``key`` changes when it does.
+
+        A function of ``index`` alone (whatever was asked before): a random profile is drawn
+        from a stream of its own per epoch of ``random_every`` frames (was one stream drawn
+        in call order, so asking for an earlier frame gave another profile)."""
         c = self.config
         if self._static is not None:
             return self._static, "static"
@@ -221,9 +225,12 @@ class Simulator:
             return self._evolving.at(t), ("evolving", index)
         epoch = index // c.random_every
         if self._random_epoch != epoch:
-            self._random_epoch = epoch
-            self._random_profile = self.model().sample(self._profile_rng, 1, self.altitude_m)[0]
+            ss = self._profile_ss
+            rng = np.random.default_rng(np.random.SeedSequence(
+                ss.entropy, spawn_key=tuple(ss.spawn_key) + (int(epoch),)))
+            self._random_profile = self.model().sample(rng, 1, self.altitude_m)[0]
             self._random_profile.setflags(write=False)
+            self._random_epoch = epoch
         return self._random_profile, ("random", epoch)
 
     # -- displacements -------------------------------------------------------------------
