@@ -297,6 +297,12 @@ class CentroiderNode(Node):
             self._last_stamp = stamp_ns
         return stamp_ns, image
 
+    def destroy_node(self):
+        if self._inlet is not None:          # stop reading shared memory first
+            self._inlet.close()
+            self._inlet = None
+        return super().destroy_node()
+
     def _log_counters(self):
         c = self.counters
         self.get_logger().info(
@@ -305,8 +311,6 @@ class CentroiderNode(Node):
 
 
 def _final_counts(node) -> None:
-    if node._inlet is not None:
-        node._inlet.close()
     print(f"centroider_node: final counts {json.dumps(node.counters.as_dict())}", flush=True)
 
 

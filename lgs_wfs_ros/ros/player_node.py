@@ -251,6 +251,10 @@ class PlayerNode(Node):
         self._thread.join(timeout=5)
         self._outlet.close()
 
+    def destroy_node(self):
+        self.stop()                          # the frame thread and its shared memory first
+        return super().destroy_node()
+
 
 def _finish(node) -> None:
     node.stop()

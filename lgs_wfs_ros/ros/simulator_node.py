@@ -131,7 +131,7 @@ class SimulatorNode(Node):
                 sensor = Sensor.paper_single(sensor.detector, **{
                     k: val for k, val in fields.items() if k != "detector"})
             config = SimulationConfig(**{n: v[n] for n in CONFIG_PARAMS})
-            return Simulator(sensor, config)
+            return Simulator(sensor, config, fast=True)      # compiled noise where numba is
         except (SensorError, TypeError) as exc:
             raise ValueError(str(exc)) from exc
 
@@ -189,20 +189,25 @@ class SimulatorNode(Node):
             budget = self.get_parameter("frames").value
             if budget and self.published >= budget:
                 break
+            self._outlet.wait_for_room(self._stop.is_set)    # lockstep: before rendering
             with self._lock:
                 sim = self.sim
                 if sim is not source:                      # new parameters: drop the old batch
                     queue, source = [], sim
                     sensor_id = shm.sensor_id(sim.sensor)
                 if not queue:
-                    queue = self._make_frames(sim, budget - self.published if budget else None)
-                frame = queue.pop(0)
+                    queue = self._make_frames(sim, budget - self.published if budget else None,
+                                              self._outlet)
+                frame, buf = queue.pop(0)
                 layout = sim.layout
                 period_s = 1.0 / sim.sensor.frame_rate_hz
             if first is None:          # the schedule starts with the first frame, not its set-up
                 due = time.monotonic()
             truth = geometry.slopes_to_grid(frame.truth, layout)
-            self._outlet.publish(frame.frame, stamp_ns, sensor_id, stop=self._stop.is_set)
+            if buf is not None:                            # rendered straight into the loan
+                self._outlet.send(buf, stamp_ns, sensor_id)
+            else:
+                self._outlet.publish(frame.frame, stamp_ns, sensor_id, stop=self._stop.is_set)
             self._truth_pub.publish(bags.encode_image(truth, stamp_ns))
             self.published += 1
             last = time.monotonic()
@@ -225,19 +230,27 @@ class SimulatorNode(Node):
             self.get_logger().info(f"published {self.published} frames")
 
     @staticmethod
-    def _make_frames(sim, left):
-        """The next frames: a batch of up to ``BATCH_SUBAPERTURES`` spots rendered together
-        for a small sensor (the paper's single subaperture: ~0.3 ms instead of ~1 ms per
-        frame), one frame at a time for the full pupil."""
+    def _make_frames(sim, left, outlet):
+        """The next ``[(frame, loaned buffer or None)]``: a batch of up to
+        ``BATCH_SUBAPERTURES`` spots rendered together for a small sensor (the paper's single
+        subaperture: ~0.3 ms instead of ~1 ms per frame), one frame at a time for the full
+        pupil, rendered straight into the outlet's buffer (shared memory with ``shm``)."""
         k = max(1, min(BATCH_FRAMES, BATCH_SUBAPERTURES // sim.layout.n_valid))
         if left is not None:
             k = max(1, min(k, left))
-        return sim.next_batch(k) if k > 1 else [sim.next()]
+        if k > 1:
+            return [(f, None) for f in sim.next_batch(k)]
+        buf = outlet.loan(sim.sensor.frame_shape, sim.sensor.dtype)
+        return [(sim.next(out=buf.image), buf)]
 
     def stop(self):
         self._stop.set()
         self._thread.join(timeout=10)
         self._outlet.close()
+
+    def destroy_node(self):
+        self.stop()                          # the frame thread and its shared memory first
+        return super().destroy_node()
 
 
 def _published(node) -> bool:
