@@ -97,3 +97,39 @@ def test_player_through_shared_memory(ros, tmp_path):
         np.testing.assert_allclose(geometry.grid_to_slopes(got["/cog/slopes"][stamp], lay),
                                    lib.centroid(f), atol=1e-5)
     assert cog.counters.transport_lost == 0 and cog.counters.rejected == 0
+
+
+def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
+    """simulator --shm--> centroider, recorder on the ROS topics: the bag loads with the
+    analysis reader, every slope joins its truth by stamp, and the decimated frames are
+    frames of the run (their stamps among the truths')."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import joined, load_bag
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
+
+    out, n = tmp_path / "shm.mcap", 60
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("discover", value=False),
+        Parameter("topics", value=["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor",
+                                   "/cog/slopes", "/cog/centroider"])]))
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
+                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
+    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in SMALL.items()] + [
+        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
+        Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=1.5),
+        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
+        Parameter("frame_publish_hz", value=20.0)]))
+    assert wait_for(lambda: sim.finished.is_set(), timeout=60)
+    assert wait_for(lambda: cog.counters.published == n, timeout=20)
+    assert wait_for(lambda: rec.recorded.get("/cog/slopes", 0) == n, timeout=20)
+    rec.close()
+    data = load_bag(out, max_frames=None)
+    assert len(data.truth) == n and len(data.segments) == 1
+    stamps, est, truth, join = joined(data.truth, data.segments[0].slopes)
+    assert len(stamps) == n and np.isfinite(est).any()
+    assert 6 <= data.frame_count <= 20                       # 20 Hz of a 0.6 s run
+    assert set(data.frames.stamps) <= set(data.truth.stamps)
+    assert data.frames.data.shape[1:] == sim.sim.sensor.frame_shape

@@ -94,12 +94,7 @@ class CentroiderNode(Node):
         self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
         self._frame_sub = self._inlet = None
         self._sensor_id = shm.sensor_id(self.sensor)
-        if self.get_parameter("frame_transport").value == "shm":
-            try:
-                self._inlet = frame_transport.FrameInlet(self.resolve_topic_name("frame"),
-                                                         self._on_shm_frame)
-            except shm.ShmUnavailable as exc:
-                raise ValueError(str(exc)) from exc
+        self._shm = self.get_parameter("frame_transport").value == "shm"
         self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
         self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
@@ -193,7 +188,16 @@ class CentroiderNode(Node):
     def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
         frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
-        if self._inlet is not None:       # frames come through shared memory
+        if self._shm:                     # frames come through shared memory
+            depth = frame_transport.inlet_depth(sensor)
+            if self._inlet is None or self._inlet.depth != depth:
+                if self._inlet is not None:
+                    self._inlet.close()
+                try:
+                    self._inlet = frame_transport.FrameInlet(
+                        self.resolve_topic_name("frame"), self._on_shm_frames, depth)
+                except shm.ShmUnavailable as exc:
+                    raise ValueError(str(exc)) from exc
             return
         profile = qos.frame_qos(sensor)
         if self._frame_sub is not None:
@@ -220,21 +224,25 @@ class CentroiderNode(Node):
             batch.append(self._accept(queued[0]))
         self._centroid_and_publish([b for b in batch if b is not None])
 
-    def _on_shm_frame(self, stamp_ns: int, image, sensor_id: int):
-        """One frame read in place from shared memory (the inlet's thread)."""
-        self.counters.received += 1
-        self.counters.transport_lost = self._inlet.lost
-        if sensor_id and sensor_id != self._sensor_id:
-            self._reject(f"frame of another sensor (id {sensor_id:x}, expected "
-                         f"{self._sensor_id:x}): its description has not arrived yet")
-            return
-        accepted = self._check(stamp_ns, image)
-        if accepted is not None:
-            try:
-                self._centroid_and_publish([accepted])
-            except Exception:      # a publish after SIGINT shut the context down
-                if self.context.ok():
-                    raise
+    def _on_shm_frames(self, frames, lost: int):
+        """Frames read in place from shared memory (the inlet's thread): ``[(stamp_ns,
+        image, sensor_id)]``, valid during this call; small ones centroided together."""
+        self.counters.transport_lost = lost
+        accepted = []
+        for stamp_ns, image, sensor_id in frames:
+            self.counters.received += 1
+            if sensor_id and sensor_id != self._sensor_id:
+                self._reject(f"frame of another sensor (id {sensor_id:x}, expected "
+                             f"{self._sensor_id:x}): its description has not arrived yet")
+                continue
+            ok = self._check(stamp_ns, image)
+            if ok is not None:
+                accepted.append(ok)
+        try:
+            self._centroid_and_publish(accepted)
+        except Exception:      # a publish after SIGINT shut the context down
+            if self.context.ok():
+                raise
 
     def _centroid_and_publish(self, batch):
         """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order."""

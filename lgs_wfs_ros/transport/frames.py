@@ -21,7 +21,16 @@ import numpy as np
 from .. import bags
 from . import shm
 
-DRAIN = 16       # shared-memory frames handled per wake-up at most
+DRAIN = 16       # shared-memory frames handled per wake-up at most (<= shm.MAX_BORROWED)
+INLET_QUEUE_S = 0.14     # an inlet's queue holds this long at the sensor's rate ...
+INLET_DEPTH_MIN = 32     # ... at least this many frames (and at most shm.MAX_DEPTH)
+
+
+def inlet_depth(sensor) -> int:
+    """Frames an inlet queues for ``sensor``: 0.14 s at its rate (as the ROS frame queue,
+    ``qos.frame_depth``), 32 to ``shm.MAX_DEPTH`` (112 at 800 Hz, 256 at 6 kHz)."""
+    want = int(np.ceil(INLET_QUEUE_S * float(sensor.frame_rate_hz) - 1e-9))
+    return int(min(shm.MAX_DEPTH, max(INLET_DEPTH_MIN, want)))
 
 
 def topic_service(topic: str) -> str:
@@ -116,13 +125,15 @@ class _Plain:
 
 
 class FrameInlet:
-    """Shared-memory frames of a resolved topic handed to ``on_frame(stamp_ns, image, sensor_id)``
-    on a thread of its own; ``lost`` counts the frames the publisher sent that never came.
-    Acks every released frame, so lockstep publishers wait for this reader."""
+    """Shared-memory frames of a resolved topic handed, up to ``DRAIN`` at a time, to
+    ``on_frames([(stamp_ns, image, sensor_id)], lost)`` on a thread of its own (the images
+    are valid during the call; ``lost``: frames the publisher sent that never came). Acks
+    every released frame, so lockstep publishers wait for this reader."""
 
-    def __init__(self, topic: str, on_frame, depth: int = shm.DEFAULT_DEPTH):
-        self._sub = shm.ShmFrameSubscriber(topic_service(topic), depth=depth, ack=True)
-        self._on_frame = on_frame
+    def __init__(self, topic: str, on_frames, depth: int = shm.DEFAULT_DEPTH):
+        self.depth = int(depth)
+        self._sub = shm.ShmFrameSubscriber(topic_service(topic), depth=self.depth, ack=True)
+        self._on_frames = on_frames
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="frame-inlet", daemon=True)
         self._thread.start()
@@ -139,8 +150,19 @@ class FrameInlet:
         while not self._stop.is_set():
             if not self._sub.wait(0.1):
                 continue
-            for frame in self._sub.drain(DRAIN):
-                self._on_frame(frame.stamp_ns, frame.image, frame.sensor_id)
+            held = []
+            try:
+                for _ in range(DRAIN):
+                    frame = self._sub.take()
+                    if frame is None:
+                        break
+                    held.append(frame)
+                if held:
+                    self._on_frames([(f.stamp_ns, f.image, f.sensor_id) for f in held],
+                                    self._sub.lost)
+            finally:
+                for f in held:
+                    f.release()
 
     def close(self):
         self._stop.set()
