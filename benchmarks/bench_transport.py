@@ -186,6 +186,8 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
         time.sleep(2.0)                                   # the last frames through
         g.stop()
         cen = final_counts(g.log(cen_key))
+        src_sent = final_counts(g.log(src_key)).get("frame")      # the player says
+        reasons = re.findall(r"\(last: (.*)\)", g.log(cen_key))
     reader = bags.BagReader(out)
     log = {t: {} for t in ("/wfs/true_slopes", f"/{alg}/slopes")}
     for topic, _ty, log_ns, _pub, cdr in reader.messages(list(log)):
@@ -193,7 +195,9 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
     frames_recorded = reader.topics().get("/wfs/frame", (None, 0))[1]
     out.unlink()
     truths, slopes = log["/wfs/true_slopes"], log[f"/{alg}/slopes"]
-    sent = len(truths)          # every truth sent is recorded (the QoS promise)
+    # frames sent: the player's own count; the simulator's from its truths (each frame's
+    # truth goes out after the frame, and the recorder keeps every truth it receives)
+    sent = src_sent if src_sent is not None else len(truths)
     tt = sorted(truths.values())
     sent_hz = (len(tt) - 1) / ((tt[-1] - tt[0]) * 1e-9) if len(tt) > 1 else float("nan")
     st = sorted(slopes.values())
@@ -211,13 +215,14 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
             "offered_hz": float(rate), "delivered_hz": round(delivered_hz, 1),
             "sent_hz": round(sent_hz, 1),
             "lost": {"source": max(0, offered - sent), "transport": sent - taken,
-                     "centroider": taken - published, "recorder": published - len(slopes)},
+                     "centroider": taken - published, "recorder": published - len(slopes),
+                     "recorder_truths": sent - len(truths)},
             "latency_ms_p50": percentile_ms(lat, 50), "latency_ms_p99": percentile_ms(lat, 99),
             "cpu_ms_per_frame": cpu_ms,
             "cpu_cores": {k: round(v / span_s, 2) for k, v in cpu.items()},
             "counts": {"sent": sent, "taken": taken, "published": published,
                        "recorded": len(slopes), "frames_recorded": frames_recorded,
-                       "centroider": cen},
+                       "centroider": cen, "last_reject": reasons[-1] if reasons else ""},
             "lockstep": lockstep, "seconds": seconds, "load": os.getloadavg()[0]}
 
 

@@ -188,14 +188,11 @@ class CentroiderNode(Node):
     def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
         frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
-        if self._shm:                     # frames come through shared memory
-            depth = frame_transport.inlet_depth(sensor)
-            if self._inlet is None or self._inlet.depth != depth:
-                if self._inlet is not None:
-                    self._inlet.close()
-                try:
+        if self._shm:       # frames come through shared memory: one inlet, never recreated
+            if self._inlet is None:      # (that would lose its queue; the depth is the most
+                try:                     # the service allows, whatever the sensor)
                     self._inlet = frame_transport.FrameInlet(
-                        self.resolve_topic_name("frame"), self._on_shm_frames, depth)
+                        self.resolve_topic_name("frame"), self._on_shm_frames, shm.MAX_DEPTH)
                 except shm.ShmUnavailable as exc:
                     raise ValueError(str(exc)) from exc
             return
@@ -232,6 +229,8 @@ class CentroiderNode(Node):
         for stamp_ns, image, sensor_id in frames:
             self.counters.received += 1
             if sensor_id and sensor_id != self._sensor_id:
+                self._await_sensor(sensor_id)
+            if sensor_id and sensor_id != self._sensor_id:
                 self._reject(f"frame of another sensor (id {sensor_id:x}, expected "
                              f"{self._sensor_id:x}): its description has not arrived yet")
                 continue
@@ -243,6 +242,17 @@ class CentroiderNode(Node):
         except Exception:      # a publish after SIGINT shut the context down
             if self.context.ok():
                 raise
+
+    def _await_sensor(self, sensor_id: int, timeout_s: float = 2.0):
+        """Shared-memory frames can overtake the sensor description (a ROS topic): wait for
+        it once per unknown sensor id (this is the inlet's thread; the frames queue)."""
+        waited = self.__dict__.setdefault("_sensor_ids_waited", set())
+        if sensor_id in waited:
+            return
+        waited.add(sensor_id)
+        deadline = time.monotonic() + timeout_s
+        while sensor_id != self._sensor_id and time.monotonic() < deadline:
+            time.sleep(0.005)
 
     def _centroid_and_publish(self, batch):
         """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order."""

@@ -22,15 +22,6 @@ from .. import bags
 from . import shm
 
 DRAIN = 16       # shared-memory frames handled per wake-up at most (<= shm.MAX_BORROWED)
-INLET_QUEUE_S = 0.14     # an inlet's queue holds this long at the sensor's rate ...
-INLET_DEPTH_MIN = 32     # ... at least this many frames (and at most shm.MAX_DEPTH)
-
-
-def inlet_depth(sensor) -> int:
-    """Frames an inlet queues for ``sensor``: 0.14 s at its rate (as the ROS frame queue,
-    ``qos.frame_depth``), 32 to ``shm.MAX_DEPTH`` (112 at 800 Hz, 256 at 6 kHz)."""
-    want = int(np.ceil(INLET_QUEUE_S * float(sensor.frame_rate_hz) - 1e-9))
-    return int(min(shm.MAX_DEPTH, max(INLET_DEPTH_MIN, want)))
 
 
 def topic_service(topic: str) -> str:

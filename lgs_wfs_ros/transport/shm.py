@@ -43,7 +43,8 @@ except ImportError:                    # pragma: no cover - exercised where it i
     AVAILABLE = False
 
 PREFIX = "lgs_wfs_ros"
-MAX_DEPTH = 256          # the service's largest subscriber queue (frames)
+MAX_DEPTH = 256          # the service's largest subscriber queue (frames; the publisher's
+                         # segment holds this many per subscriber whatever they ask)
 DEFAULT_DEPTH = 32       # a subscriber's queue: 40 ms at 800 Hz, 59 MB of full-pupil frames
 MAX_SUBSCRIBERS = 8
 MAX_BORROWED = 16       # frames a subscriber holds at once
