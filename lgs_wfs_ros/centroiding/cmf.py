@@ -369,8 +369,11 @@ class CMF(Centroider):
             # coefficients, 8.5 MB in float32, are the bulk of the memory traffic)
             self.ref.observe(None, None)
             r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+            stack = kernels.stack_view(raw, self.n, self.p)
             if kernels.fits(raw, self.sensor.frame_shape):     # compiled, one pass, in place
                 m = kernels.block_contract(raw, kernels.origins(self), r3_32)
+            elif stack is not None:                            # the same sums for a stack
+                m = kernels.block_contract(stack, kernels.stack_origins(self.n, self.p), r3_32)
             else:
                 flat = self.as_stack(raw).reshape(self.n, -1)
                 m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)

@@ -8,7 +8,7 @@ in registers. Outside the pupil nothing is read.
 - :func:`cog_moments`: ``(n, 3)`` [total, sum v (x - c), sum v (y - c)] per valid block,
   exact integer sums for integer frames (what ``rows @ [1, x, y]`` gives in float).
 - :func:`block_contract`: ``(n, k)`` per-block weights times pixels (a CMF filter
-  ``[R; 1]`` of ``(n, k, p*p)``), float32 products summed in float64.
+  ``[R; 1]`` of ``(n, k, p*p)``), float32 weights times pixels summed in float64.
 
 numba is optional (the ``fast`` extra): :data:`AVAILABLE` says whether these run; callers
 keep their numpy path for when it is False. Shapes: frames ``(G*p, G*p)``; ``origins``
@@ -41,6 +41,28 @@ def origins(centroider) -> np.ndarray:
         cached = (centroider.layout, block_origins(centroider.layout))
         centroider.__dict__["_kernel_origins"] = cached
     return cached[1]
+
+
+def stack_view(stack, n: int, p: int):
+    """An integer ``(n, p, p)`` stack as a ``(n*p, p)`` frame whose blocks are at
+    :func:`stack_origins` (a view; None if the stack does not fit the kernels), so that
+    frames and stacks of the same pixels give the same sums bit for bit."""
+    if not (AVAILABLE and isinstance(stack, np.ndarray) and stack.shape == (n, p, p)
+            and stack.dtype.kind in "ui" and stack.itemsize <= 2 and stack.flags.c_contiguous):
+        return None
+    return stack.reshape(n * p, p)
+
+
+_stack_origins: dict = {}
+
+
+def stack_origins(n: int, p: int) -> np.ndarray:
+    """``(n, 2)`` origins of the blocks of :func:`stack_view`."""
+    key = (int(n), int(p))
+    if key not in _stack_origins:
+        _stack_origins[key] = np.ascontiguousarray(
+            np.stack([np.arange(n) * p, np.zeros(n, int)], axis=1).astype(np.int64))
+    return _stack_origins[key]
 
 
 def fits(frame, shape) -> bool:
@@ -76,6 +98,8 @@ def _cog_moments_impl(frame, origins, p, centre, out):
 
 
 def _block_contract_impl(frame, origins, p, weights, out):
+    # float32 weights times exact pixel values, summed in float64: a float32 sum of 256
+    # products of mixed sign loses ~1e-4 of the result to cancellation
     n = origins.shape[0]
     k = weights.shape[1]
     for b in range(n):
@@ -83,12 +107,12 @@ def _block_contract_impl(frame, origins, p, weights, out):
         c0 = origins[b, 1]
         for q in range(k):
             w = weights[b, q]
-            acc = np.float32(0.0)
+            acc = 0.0
             for i in range(p):
                 row = frame[r0 + i, c0:c0 + p]
                 wi = w[i * p:(i + 1) * p]
                 for j in range(p):
-                    acc += wi[j] * np.float32(row[j])
+                    acc += np.float64(wi[j]) * np.float64(row[j])
             out[b, q] = acc
 
 
