@@ -16,7 +16,8 @@ def declare_frame_transport(node):
                        "the frame topic then gets frame_publish_hz of them).",
                        choices=TRANSPORTS, read_only=True)
     parameters.declare(node, "frame_publish_hz", 10.0, "With frame_transport shm: frames per "
-                       "second also published on the frame topic (0: none).", low=0.0, high=1e5)
+                       "second also published on the frame topic (0: none).", low=0.0, high=1e5,
+                       read_only=True)
     parameters.declare(node, "frame_lockstep", False, "With frame_transport shm: wait for the "
                        "readers instead of dropping frames (the source slows down).",
                        read_only=True)
