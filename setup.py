@@ -71,6 +71,10 @@ setup(
         # ROS 2 Jazzy from PyPI wheels, for a plain venv; leave it out on a system ROS install.
         "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6"],
         "train": ["torch==2.13.0"],
+        # zero-copy frames between the nodes of one host (frame_transport: shm)
+        "shm": ["iceoryx2>=0.10,<0.11"],
+        # compiled single-pass centroid kernels and the fast simulator (numpy fallback without)
+        "fast": ["numba>=0.68,<0.69"],
         # Test-only tools: aotools and the mcap reference readers check our own code;
         # colcon builds the package in a test, as a ROS install would.
         "test": ["pytest>=8,<10", "aotools>=1.0.7,<2", "mcap-ros2-support>=0.5,<1",

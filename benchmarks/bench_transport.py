@@ -1,40 +1,34 @@
-"""ROS transport: frames per second through player -> centroider -> recorder, and where the time goes.
+"""Frames end to end: source -> centroider -> recorder as separate processes, per transport.
+
+    python benchmarks/bench_transport.py --transport ros,shm --algorithms cog,cmf,ann \
+        --source simulator,player --rate 800 --seconds 10 --json OUT.json
 
 Each case is a graph of three node processes (``lgs_wfs_ros.ros.graph``) on an isolated
-localhost domain with the package's Fast DDS profile (64 MB shared-memory segment):
+localhost domain: a source (``player``: an uncompressed bag of distinct simulated frames in a
+loop, stamps shifted every pass; or ``simulator``: frames simulated live) offering frames at a
+fixed rate, one centroider (cog; cmf with model weighting and reference, the real-time
+setting; ann), and the recorder writing slopes and truths at full rate (with ``shm`` also the
+decimated ROS ``frame`` topic, 10 Hz). Frames travel with ``frame_transport`` ``ros`` (Fast
+DDS) or ``shm`` (iceoryx2, read in place). The full pupil runs at ``--rate``, the paper's
+single subaperture at ``--single-rate`` (``--sizes``).
 
-- the player replays an uncompressed bag of distinct simulated frames in a loop (stamps
-  shifted every pass, ``restamp_loops``) at a fixed rate (800 Hz full pupil, 6 kHz single
-  subaperture) for a few seconds;
-- one centroider (cog, cmf with model weighting, ann) computes slopes;
-- the recorder writes slopes and truths at full rate (frames not recorded: ``frame_every`` 0).
-
-Flow-controlled runs: the player at rate ``max`` with a few frames in flight (``in_flight``:
-4 full pupil, 64 single subaperture): the next frame goes out when the centroider has answered
-the one that many frames back, so its queue never overflows; the highest rate with nothing
-lost.
-
-A further graph per case replaces centroider and recorder by ``frame_sink.py``, which only
-takes the raw frames: the rate it receives is the ceiling of rclpy + Fast DDS on this
-machine, before any compute.
-
-Rows per case: frames sent by the player (its achieved rate), slopes out of the centroider
-per second, frames lost before the centroider (sent - received, incl. the gaps it counted),
-slopes lost between centroider and recorder (processed - recorded; the QoS promise is 0).
-
-The breakdown rows time the per-frame stages in this process, one thread: the copy that
-assigns a message's bytes, CDR decode (zero-copy view), compute, slopes -> grid + CDR encode,
-and the recorder's ``BagWriter.write`` of one slopes message; plus a cProfile of the
-centroider node process at the full-pupil rate (its share in rclpy's take = DDS + executor).
-Load average of the shared machine is in every note.
+One JSON row per case: ``transport, algorithm, source, size, offered_hz, delivered_hz``
+(slopes per second reaching the recorder), ``lost`` (a dict per stage: ``source`` frames the
+source did not produce on schedule, ``transport`` sent but never taken by the centroider,
+``centroider`` taken but no slopes, ``recorder`` slopes published but not recorded,
+``truths`` sent but not recorded), ``latency_ms_p50, latency_ms_p99`` (a frame's slopes
+against its truth, both as received by the recorder: source publish -> slopes in the
+recorder), ``cpu_ms_per_frame`` (a dict per process: user + system CPU of all its threads,
+from /proc, over its own frames). ``run(quick)`` (for ``benchmarks/run.py``) runs a smaller
+grid and returns the rows flattened to ``name/value/unit/target/note`` with the case beside.
+The machine may be shared: the load average is in every row.
 """
 
 from __future__ import annotations
 
-import cProfile  # noqa: F401  (the profile run uses ``python -m cProfile``)
+import argparse
 import json
 import os
-import pstats
 import re
 import signal
 import sys
@@ -117,51 +111,42 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
 
 
 # -- the graph ---------------------------------------------------------------------------------
-class ProfiledSpec(NodeSpec):
-    """A node process run under ``python -m cProfile -o <out>``."""
-
-    def __init__(self, *a, profile_out: str, **kw):
-        super().__init__(*a, **kw)
-        self.profile_out = profile_out
-
-    def command(self, workdir):
-        cmd = super().command(workdir)
-        return [cmd[0], "-m", "cProfile", "-o", self.profile_out] + cmd[1:]
-
-
-def specs(bag: Path, out: Path, alg: str, params: dict, rate: str, profile_out: str | None = None,
-          profile_node: str = "centroider_node", in_flight: int = 1):
-    rec = NodeSpec("recorder_node", "wfs", {
-        "output": str(out), "overwrite": True, "discover": False, "frame_every": 0,
-        "compression": "none",
-        "topics": ["/wfs/true_slopes", "/wfs/sensor", f"/{alg}/slopes", f"/{alg}/centroider"]})
-    cparams = {"algorithm": alg, "log_period_s": 0.5, **params}
-    remaps = {"frame": "/wfs/frame", "sensor": "/wfs/sensor"}
-    cen = (ProfiledSpec("centroider_node", alg, cparams, remaps, profile_out=profile_out)
-           if profile_out and profile_node == "centroider_node"
-           else NodeSpec("centroider_node", alg, cparams, remaps))
-    pspec = (lambda *a: ProfiledSpec(*a, profile_out=profile_out)) \
-        if profile_out and profile_node == "player_node" else NodeSpec
-    player = pspec("player_node", "wfs", {"bag": str(bag), "rate": rate, "loop": True,
-                                             "wait_for": [f"/{alg}/slopes" if rate == "max" else "/unused/slopes"],
-                                             "start_delay_s": 3.0, "in_flight": in_flight})
-    return [rec, cen, player]
-
-
-class SinkSpec(NodeSpec):
-    """``benchmarks/frame_sink.py``: takes ``/wfs/frame`` raw, counts, nothing else."""
-
-    def command(self, workdir):
-        return [sys.executable, str(Path(__file__).with_name("frame_sink.py"))]
-
-
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process (all its threads), s, from /proc."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def wait_started(g: Graph, cen_key: str, timeout: float = 90.0) -> None:
+def final_counts(log: str) -> dict:
+    m = re.findall(r"final counts (\{.*\})", log)
+    return json.loads(m[-1]) if m else {}
+
+
+def specs(transport: str, alg: str, source: str, sensor: Sensor, rate: float, out: Path,
+          bag: Path | None, params: dict, lockstep: bool) -> list[NodeSpec]:
+    """Recorder, centroider and source of one case."""
+    shm = transport == "shm"
+    topics = ["/wfs/true_slopes", "/wfs/sensor", f"/{alg}/slopes", f"/{alg}/centroider"]
+    rec = NodeSpec("recorder_node", "wfs", {
+        "output": str(out), "overwrite": True, "discover": False, "compression": "none",
+        "frame_every": 1 if shm else 0, "topics": topics + (["/wfs/frame"] if shm else [])})
+    cen = NodeSpec("centroider_node", alg, {"algorithm": alg, "log_period_s": 0.5,
+                                            "frame_transport": transport, **params},
+                   {"frame": "/wfs/frame", "sensor": "/wfs/sensor"})
+    tp = {"frame_transport": transport, "frame_publish_hz": 10.0, "frame_lockstep": lockstep}
+    if source == "player":
+        src = NodeSpec("player_node", "wfs", {"bag": str(bag), "rate": str(rate), "loop": True,
+                                              "wait_for": ["/unused/slopes"],
+                                              "start_delay_s": 3.0, **tp})
+    else:
+        fields = {"single_subaperture": True, "detector": "polar"} if sensor.is_single else {}
+        src = NodeSpec("simulator_node", "wfs", {
+            "frame_rate_hz": float(rate), "rate_hz": 0.0, "profile": "random",
+            "random_every": 10**9, "start_delay_s": 3.0, **fields, **tp})
+    return [rec, cen, src]
+
+
+def wait_started(g: Graph, cen_key: str, src_key: str, timeout: float = 120.0) -> None:
     """Until the centroider logs frames received (its counters, every 0.5 s), then 1 s more."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -170,114 +155,114 @@ def wait_started(g: Graph, cen_key: str, timeout: float = 90.0) -> None:
             return
         time.sleep(0.2)
     raise RuntimeError(f"no frame reached the centroider in {timeout:.0f} s:\n"
-                       + g.log(cen_key)[-2000:] + g.log(PLAYER)[-2000:])
+                       + g.log(cen_key)[-2000:] + g.log(src_key)[-2000:])
 
 
-def final_counts(log: str) -> dict:
-    m = re.findall(r"final counts (\{.*\})", log)
-    return json.loads(m[-1]) if m else {}
+def percentile_ms(values_ns, q) -> float:
+    return round(float(np.percentile(values_ns, q)) * 1e-6, 3) if len(values_ns) else float("nan")
 
 
-def measure_then_stop(g: Graph, seconds: float, drain_s: float) -> dict:
-    """CPU cores each process of ``g`` uses over the next ``seconds``; then interrupt the
-    player, wait ``drain_s`` for what is in flight, and stop the graph."""
-    pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
-    cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
-    t0 = time.monotonic()
-    time.sleep(seconds)
-    cpu = {k: (cpu_seconds(pid) - cpu0[k]) / (time.monotonic() - t0) for k, pid in pids.items()}
-    g.procs[PLAYER].send_signal(signal.SIGINT)
-    g.wait(PLAYER, 10)
-    time.sleep(drain_s)
-    g.stop()
-    return cpu
-
-
-def run_pipeline(bag: Path, sensor: Sensor, alg: str, params: dict, rate: str, seconds: float,
-                 profile_out: str | None = None, profile_node: str = "centroider_node",
-                 in_flight: int = 1) -> dict:
-    """Run the graph; stop the player after ``seconds`` of frames, let the rest drain, count."""
-    out = bag.parent / f"out_{alg}_{time.monotonic_ns()}.mcap"
-    cen_key = f"{alg}/centroider_node"
-    with Graph(specs(bag, out, alg, params, rate, profile_out, profile_node, in_flight),
-               log_dir=bag.parent / "logs") as g:
-        wait_started(g, cen_key)                 # start delay, discovery, first frames
-        cpu = measure_then_stop(g, seconds, drain_s=2.0)   # drain: last frames through the centroider
-        player, cen = final_counts(g.log(PLAYER)), final_counts(g.log(cen_key))
+def run_case(transport: str, alg: str, source: str, size: str, rate: float, seconds: float,
+             tmp: Path, bag: Path | None = None, lockstep: bool = False) -> dict:
+    """One graph for ``seconds`` of frames, then the source is stopped, the rest drains, and
+    everything is counted by stamp from the recorded bag. The issue-18 row."""
+    sensor = full_sensor(rate) if size == "full" else single_sensor(rate)
+    name, params = ALGORITHMS[alg]
+    if alg == "ann":
+        params = {"ann.model": ann_model(sensor, tmp)}
+    out = tmp / f"out_{transport}_{alg}_{source}_{time.monotonic_ns()}.mcap"
+    src_key, cen_key = f"wfs/{source}_node", f"{alg}/centroider_node"
+    with Graph(specs(transport, alg, source, sensor, rate, out, bag, params, lockstep),
+               log_dir=tmp / "logs") as g:
+        wait_started(g, cen_key, src_key)
+        pids = {k.split("/")[1]: p.pid for k, p in g.procs.items()}
+        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        span_s = time.monotonic() - t0
+        cpu = {k: cpu_seconds(pid) - cpu0[k] for k, pid in pids.items()}
+        g.procs[src_key].send_signal(signal.SIGINT)
+        g.wait(src_key, 15)
+        time.sleep(2.0)                                   # the last frames through
+        g.stop()
+        cen = final_counts(g.log(cen_key))
+        src_sent = final_counts(g.log(src_key)).get("frame")      # the player says
+        reasons = re.findall(r"\(last: (.*)\)", g.log(cen_key))
     reader = bags.BagReader(out)
-    counts = {t: n for t, (_ty, n) in reader.topics().items()}
-    recorded = counts.get(f"/{alg}/slopes", 0)
-    log_ns = [log for _t, _ty, log, _p, _c in reader.messages([f"/{alg}/slopes"])]
-    t_log = [log for _t, _ty, log, _p, _c in reader.messages(["/wfs/true_slopes"])]
+    log = {t: {} for t in ("/wfs/true_slopes", f"/{alg}/slopes")}
+    for topic, _ty, log_ns, _pub, cdr in reader.messages(list(log)):
+        log[topic][bags.peek_stamp(cdr)] = log_ns
+    frames_recorded = reader.topics().get("/wfs/frame", (None, 0))[1]
     out.unlink()
-    span = (log_ns[-1] - log_ns[0]) * 1e-9 if len(log_ns) > 1 else float("nan")
-    t_span = (t_log[-1] - t_log[0]) * 1e-9 if len(t_log) > 1 else float("nan")
-    sent = player.get("frame", 0)
-    return {"sent": sent, "sent_hz": (len(t_log) - 1) / t_span if t_span > 0 else float("nan"),
-            "received": cen.get("received", 0), "processed": cen.get("processed", 0),
-            "dropped_counted": cen.get("dropped", 0), "rejected": cen.get("rejected", 0),
-            "recorded": recorded, "slopes_hz": (len(log_ns) - 1) / span if span > 0 else float("nan"),
-            "truths_recorded": counts.get("/wfs/true_slopes", 0),
-            "cpu_cores": {k: round(v, 2) for k, v in cpu.items()}}
+    truths, slopes = log["/wfs/true_slopes"], log[f"/{alg}/slopes"]
+    # frames sent: the player's own count; the simulator's from its truths (each frame's
+    # truth goes out after the frame, and the recorder keeps every truth it receives)
+    sent = src_sent if src_sent is not None else len(truths)
+    tt = sorted(truths.values())
+    sent_hz = (len(tt) - 1) / ((tt[-1] - tt[0]) * 1e-9) if len(tt) > 1 else float("nan")
+    st = sorted(slopes.values())
+    delivered_hz = (len(st) - 1) / ((st[-1] - st[0]) * 1e-9) if len(st) > 1 else float("nan")
+    lat = [slopes[s] - truths[s] for s in slopes if s in truths]
+    taken = cen.get("taken", cen.get("received", 0))
+    published = cen.get("published", cen.get("processed", 0))
+    offered = int(round(rate * (tt[-1] - tt[0]) * 1e-9)) + 1 if len(tt) > 1 else 0
+    per_frame = {"source": sent_hz, "centroider": delivered_hz, "recorder": sent_hz}
+    roles = {f"{source}_node": "source", "centroider_node": "centroider",
+             "recorder_node": "recorder"}
+    cpu_ms = {k: round(1e3 * (v / span_s) / per_frame[roles[k]], 3)
+              for k, v in cpu.items() if per_frame[roles[k]] > 0}
+    return {"transport": transport, "algorithm": alg, "source": source, "size": size,
+            "offered_hz": float(rate), "delivered_hz": round(delivered_hz, 1),
+            "sent_hz": round(sent_hz, 1),
+            "lost": {"source": max(0, offered - sent), "transport": sent - taken,
+                     "centroider": taken - published, "recorder": published - len(slopes),
+                     "recorder_truths": sent - len(truths)},
+            "latency_ms_p50": percentile_ms(lat, 50), "latency_ms_p99": percentile_ms(lat, 99),
+            "cpu_ms_per_frame": cpu_ms,
+            "cpu_cores": {k: round(v / span_s, 2) for k, v in cpu.items()},
+            "counts": {"sent": sent, "taken": taken, "published": published,
+                       "recorded": len(slopes), "frames_recorded": frames_recorded,
+                       "centroider": cen, "last_reject": reasons[-1] if reasons else ""},
+            "lockstep": lockstep, "seconds": seconds, "load": os.getloadavg()[0]}
 
 
-def run_sink(bag: Path, rate: str, seconds: float) -> dict:
-    """Player -> frame_sink only: frames sent and received, CPU of both, over ``seconds``."""
-    player = NodeSpec("player_node", "wfs", {"bag": str(bag), "rate": rate, "loop": True,
-                                             "wait_for": ["/unused/slopes"], "start_delay_s": 3.0})
-    with Graph([SinkSpec("frame_sink", "sink"), player], log_dir=bag.parent / "logs") as g:
-        time.sleep(6.0)                          # start delay, discovery, first frames
-        cpu = measure_then_stop(g, seconds, drain_s=1.0)
-        sent = final_counts(g.log(PLAYER)).get("frame", 0)
-        m = re.findall(r"sink counts (\{.*\})", g.log("sink/frame_sink"))
-        received = json.loads(m[-1])["received"] if m else 0
-    return {"sent": sent, "received": received, "cpu_cores": {k: round(v, 2) for k, v in cpu.items()}}
-
-
-def sink_rows(label: str, r: dict, target_hz: float) -> list[dict]:
-    share = r["received"] / max(r["sent"], 1)
-    cpu = ", ".join(f"{k.split('_')[0]} {v:.2f}" for k, v in r["cpu_cores"].items())
-    return [{"name": f"{label} transport ceiling (raw sink, no compute)",
-             "value": round(100.0 * share, 1), "unit": "% received", "target": "100",
-             "note": f"sent {r['sent']}, received {r['received']}; the most any centroider can "
-                     f"take here: {share * target_hz:.0f} Hz of {target_hz:g}; CPU cores used: "
-                     f"{cpu}; {loadavg()}"}]
-
-
-def pipeline_rows(label: str, r: dict, target_hz: float, rate: str) -> list[dict]:
-    lost_before = r["sent"] - r["processed"] - r["rejected"]
-    lost_after = r["processed"] - r["recorded"]
-    cpu = ", ".join(f"{k.split('_')[0]} {v:.2f}" for k, v in r.get("cpu_cores", {}).items())
-    note = (f"player rate {rate}; CPU cores used: {cpu}; sent {r['sent']} (at {r['sent_hz']:.0f} Hz), received {r['received']}, "
-            f"processed {r['processed']}, recorded {r['recorded']}; {loadavg()}")
-    target = f">= {target_hz:g} Hz, 0 drops"
-    return [
-        {"name": f"{label} slopes rate", "value": round(r["slopes_hz"], 1), "unit": "Hz",
-         "target": target, "note": note},
-        {"name": f"{label} frames lost before centroider", "value": float(lost_before),
-         "unit": "frames", "target": "0", "note": f"of {r['sent']} sent "
-         f"({100.0 * lost_before / max(r['sent'], 1):.1f} %); centroider counted {r['dropped_counted']} by stamp gaps"},
-        {"name": f"{label} slopes lost before recorder", "value": float(lost_after), "unit": "msgs",
-         "target": "0", "note": "QoS promise: every processed frame's slopes are recorded"},
-    ] + cpu_rows(label, r, target_hz)
-
-
-def cpu_rows(label: str, r: dict, target_hz: float) -> list[dict]:
-    """CPU time per frame of each node process (robust on a shared machine) and the rate the
-    pipeline would hold on 2 idle cores from those costs."""
-    cores = r.get("cpu_cores", {})
-    per = {"player_node": r["sent_hz"], "centroider_node": r["slopes_hz"],
-           "recorder_node": r["sent_hz"]}
-    ms = {k: 1e3 * cores[k] / per[k] for k in per if k in cores and per[k] > 0}
-    rows = [{"name": f"{label} CPU {k.split('_')[0]}", "value": round(v, 3), "unit": "ms/frame",
-             "target": f"< {1e3 / target_hz:.3g}", "note": "all threads, user + system, /proc"}
-            for k, v in ms.items()]
-    if len(ms) == 3:
-        bound = min(1e3 / max(ms.values()), 2e3 / sum(ms.values()))
-        rows.append({"name": f"{label} CPU-bound rate on 2 idle cores", "value": round(bound, 1),
-                     "unit": "Hz", "target": f">= {target_hz:g}",
-                     "note": "min(1 / slowest process, 2 cores / sum of the three)"})
+def grid(transports, algorithms, sources, sizes, rate, single_rate, seconds, lockstep=False,
+         log=print) -> list[dict]:
+    """Every case of the grid (bags made once per size)."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_transport_") as d:
+        tmp = Path(d)
+        for size in sizes:
+            r = rate if size == "full" else single_rate
+            sensor = full_sensor(r) if size == "full" else single_sensor(r)
+            bag = None
+            if "player" in sources:
+                distinct, frames = (32, 128) if size == "full" else (64, 6000)
+                bag = make_bag(tmp / f"{size}.mcap", sensor, distinct, frames)
+            for source in sources:
+                for transport in transports:
+                    for alg in algorithms:
+                        row = run_case(transport, alg, source, size, r, seconds, tmp, bag,
+                                       lockstep)
+                        log(json.dumps(row))
+                        rows.append(row)
     return rows
+
+
+def flat_rows(case: dict) -> list[dict]:
+    """A case as ``benchmarks/results.json`` rows (the case itself beside the first)."""
+    label = (f"{case['size']} {case['algorithm']} {case['source']} {case['transport']} "
+             f"@{case['offered_hz']:g} Hz" + (" lockstep" if case.get("lockstep") else ""))
+    lost = sum(case["lost"].values())
+    cpu = ", ".join(f"{k.split('_')[0]} {v:.3g}" for k, v in case["cpu_ms_per_frame"].items())
+    note = (f"lost {json.dumps(case['lost'])}; CPU ms/frame {cpu}; latency p50 "
+            f"{case['latency_ms_p50']} ms; load {case['load']:.2f}")
+    return [{"name": f"{label} delivered", "value": case["delivered_hz"], "unit": "Hz",
+             "target": f">= {0.99 * case['offered_hz']:g} Hz, 0 lost", "note": note, "case": case},
+            {"name": f"{label} lost", "value": float(lost), "unit": "frames", "target": "0",
+             "note": json.dumps(case["lost"])},
+            {"name": f"{label} latency p99", "value": case["latency_ms_p99"], "unit": "ms",
+             "target": "<= 5", "note": "slopes vs truth as received by the recorder"}]
 
 
 # -- per-stage breakdown (this process, one thread) --------------------------------------------
@@ -333,71 +318,48 @@ def stage_rows(sensor: Sensor, label: str, tmp: Path, quick: bool) -> list[dict]
     return rows
 
 
-def profile_rows(pstats_file: str, label: str, processed: int) -> list[dict]:
-    """Where the centroider node process spent its time (cumulative, per processed frame)."""
-    st = pstats.Stats(pstats_file)
-    want = {  # stage -> (file suffix or "" for built-ins, function name)
-        "wait for a message (idle or starved)": ("", "<built-in method rclpy._rclpy_pybind11.wait>"),
-        "take (DDS -> bytes)": ("", "<built-in method rclpy._rclpy_pybind11.take_message>"),
-        "callback total": ("centroider_node.py", "_on_frame"),
-        "decode": ("cdr.py", "decode_image"),
-        "compute": ("centroiding", "centroid"),
-        "grid": ("geometry.py", "slopes_to_grid"),
-        "encode slopes": ("cdr.py", "encode_image"),
-        "publish slopes": ("", "<built-in method rclpy._rclpy_pybind11.publish_raw>"),
-    }
-    found = {}
-    for (file, _line, func), (_cc, _nc, _tt, ct, _callers) in st.stats.items():
-        for stage, (where, name) in want.items():
-            if func == name and where in file:
-                found[stage] = max(found.get(stage, 0.0), ct)
-    total = st.total_tt
-    rows = []
-    for stage, ct in found.items():
-        rows.append({"name": f"{label} node profile {stage}", "value": round(1e6 * ct / max(processed, 1), 1),
-                     "unit": "us/frame", "target": "", "note": f"{100 * ct / total:.0f} % of the "
-                     f"process's {total:.1f} s (cProfile, cumulative)"})
-    return rows
-
-
 # -- run -----------------------------------------------------------------------------------------
 def run(quick: bool = False) -> list[dict]:
+    """For ``benchmarks/run.py``: stage costs, then full pupil at 800 Hz (player; cog, cmf,
+    ann over shm and ros; cog from the live simulator over shm) and the single subaperture
+    at 6 kHz (player, cog, both transports)."""
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     seconds = 4.0 if quick else 10.0
     rows = []
-    with tempfile.TemporaryDirectory(prefix="bench_transport_") as d:
-        tmp = Path(d)
-        # label, sensor, fixed rate offered, target, distinct frames, bag frames, in_flight
-        cases = [("full pupil", full_sensor(800.0), "800", 800.0, 32, 128, 4),
-                 ("single subap", single_sensor(6000.0), "6000", 5000.0, 64, 6000, 64)]
-        for label, sensor, rate, target, distinct, frames, window in cases:
-            rows += stage_rows(sensor, label, tmp, quick)
-            bag = make_bag(tmp / f"{label.replace(' ', '_')}.mcap", sensor, distinct, frames)
-            rows += sink_rows(f"{label} @{rate} Hz", run_sink(bag, rate, seconds), float(rate))
-            for name, (alg, params) in ALGORITHMS.items():
-                if alg == "ann":
-                    params = {"ann.model": ann_model(sensor, tmp)}
-                r = run_pipeline(bag, sensor, alg, params, rate, seconds)
-                rows += pipeline_rows(f"{label} {name} @{rate} Hz", r, target, rate)
-                # flow control: the player keeps `window` frames in flight (rate 'max'), so
-                # the centroider is never overrun: the highest rate with nothing lost
-                if label == "full pupil" or (name == "cog" and not quick):
-                    r = run_pipeline(bag, sensor, alg, params, "max", seconds, in_flight=window)
-                    rows += pipeline_rows(f"{label} {name} flow-controlled ({window} in flight)",
-                                          r, target, "max")
-            if not quick:
-                r = run_pipeline(bag, sensor, "cog", {}, "max", seconds)
-                rows += pipeline_rows(f"{label} cog lockstep", r, target, "max")
-            if label == "full pupil":
-                prof = str(tmp / "centroider.pstats")
-                r = run_pipeline(bag, sensor, "cog", {}, rate, seconds, profile_out=prof)
-                if Path(prof).exists():
-                    rows += profile_rows(prof, f"{label} cog", r["processed"])
-            bag.unlink()
+    with tempfile.TemporaryDirectory(prefix="bench_transport_stages_") as d:
+        for sensor, label in ((full_sensor(800.0), "full pupil"), (single_sensor(6000.0), "single subap")):
+            rows += stage_rows(sensor, label, Path(d), quick)
+    cases = grid(["shm", "ros"], ["cog", "cmf", "ann"], ["player"], ["full"], 800.0, 6000.0, seconds)
+    cases += grid(["shm"], ["cog"], ["simulator"], ["full"], 200.0, 6000.0, seconds)
+    cases += grid(["shm", "ros"], ["cog"], ["player"], ["single"], 800.0, 6000.0, seconds)
+    for case in cases:
+        rows += flat_rows(case)
     return rows
 
 
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--transport", default="ros,shm")
+    ap.add_argument("--algorithms", default="cog,cmf,ann")
+    ap.add_argument("--source", default="player")
+    ap.add_argument("--sizes", default="full,single", help="full (960 x 960) and/or single")
+    ap.add_argument("--rate", type=float, default=800.0, help="full-pupil rate offered, Hz")
+    ap.add_argument("--single-rate", type=float, default=6000.0, help="single subaperture, Hz")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--lockstep", action="store_true", help="shm sources wait for the readers")
+    ap.add_argument("--json", default="", help="write the rows here (a JSON list)")
+    a = ap.parse_args(argv)
+    split = lambda text: [t.strip() for t in text.split(",") if t.strip()]  # noqa: E731
+    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    rows = grid(split(a.transport), split(a.algorithms), split(a.source), split(a.sizes),
+                a.rate, a.single_rate, a.seconds, a.lockstep)
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+        print(f"wrote {len(rows)} rows to {a.json}")
+    return 0
+
+
 if __name__ == "__main__":
-    for row in run(quick="--quick" in sys.argv):
-        print(f"{row['name']:<52} {row['value']:>10.4g} {row['unit']:<8} {row['target']:<18} {row['note']}")
+    raise SystemExit(main())

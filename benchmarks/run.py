@@ -1,6 +1,7 @@
 """Run every benchmark and write benchmarks/results.json plus a short table.
 
     python benchmarks/run.py [--quick] [--only simulator,centroiders]
+    python benchmarks/run.py --fold OUT.json    # fold bench_transport.py --json rows in
 
 Each ``benchmarks/bench_<area>.py`` exposes ``run(quick=False) -> list[dict]`` with rows
 ``{"name", "value", "unit", "target", "note"}``. Everything runs on one thread (numpy's BLAS,
@@ -31,12 +32,30 @@ def load(path: Path):
     return module
 
 
+def fold(cases_json: Path, out: Path) -> int:
+    """The issue-18 rows of ``bench_transport.py --json`` into ``out``'s 'transport' area
+    (flattened to name/value/unit/target/note, each case kept beside its first row)."""
+    cases = json.loads(cases_json.read_text())
+    rows = [r for case in cases for r in load(HERE / "bench_transport.py").flat_rows(case)]
+    results = json.loads(out.read_text()) if out.exists() else {"areas": {}}
+    results.setdefault("areas", {})["transport"] = {
+        "rows": rows, "folded_from": cases_json.name,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    out.write_text(json.dumps(results, indent=2) + "\n")
+    print(f"folded {len(cases)} cases ({len(rows)} rows) into {out}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repeats")
     ap.add_argument("--only", default="", help="comma-separated areas (file names without bench_)")
     ap.add_argument("--out", default=str(HERE / "results.json"))
+    ap.add_argument("--fold", default="", help="a bench_transport.py --json file: its rows "
+                    "become the 'transport' area (nothing is rerun)")
     args = ap.parse_args(argv)
+    if args.fold:
+        return fold(Path(args.fold), Path(args.out))
     only = {a.strip() for a in args.only.split(",") if a.strip()}
     results = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
                            "platform": platform.platform()},

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .base import Centroider, check_options, choice, number
 from .cog import elongation_fwhm_px, model_spots
 from .linearize import ResponseMap, transform_covariance
@@ -143,6 +144,7 @@ class CMF(Centroider):
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
+        kernels.warm_up()
         o = {"reference": "history", "history": 5, "include_current": True, "update_period": 1,
              "dither": 0.02, "constrained": True, "constraint_px": 1, "weighting": "image",
              "read_noise_e": float(sensor.read_noise_e), "background": float(sensor.background_e),
@@ -367,8 +369,14 @@ class CMF(Centroider):
             # coefficients, 8.5 MB in float32, are the bulk of the memory traffic)
             self.ref.observe(None, None)
             r, fok, _, r3, r3_32, q, rsum = self._model_filter()
-            flat = self.as_stack(raw).reshape(self.n, -1)
-            m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
+            stack = kernels.stack_view(raw, self.n, self.p)
+            if kernels.fits(raw, self.sensor.frame_shape):     # compiled, one pass, in place
+                m = kernels.block_contract(raw, kernels.origins(self), r3_32)
+            elif stack is not None:                            # the same sums for a stack
+                m = kernels.block_contract(stack, kernels.stack_origins(self.n, self.p), r3_32)
+            else:
+                flat = self.as_stack(raw).reshape(self.n, -1)
+                m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
         else:
             m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from . import kernels
 from .base import Centroider, check_options, choice, number, pixel_coords
 
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -41,14 +42,19 @@ class CoG(Centroider):
         self._xy32 = self._xy.astype(np.float32)
         self._w3 = np.stack([np.ones_like(x), x, y], axis=1)  # (p*p, 3): total and moments
         self._w332 = self._w3.astype(np.float32)
+        kernels.warm_up()
 
     def centroid(self, data) -> np.ndarray:
         """As :meth:`Centroider.centroid`; one matrix product gives totals and moments."""
-        rows = self.frame_rows(data)
+        rows = None
+        if kernels.fits(data, self.sensor.frame_shape):        # compiled, one pass, in place
+            m = kernels.cog_moments(data, kernels.origins(self), self.p, self.centre)
+        else:
+            rows = self.frame_rows(data)
         if rows is not None:                                    # a frame: all blocks, then keep valid
             w = self._w3 if rows.dtype == np.float64 else self._w332
             m = (rows @ w)[self.valid_rows].astype(np.float64)  # (n, 3)
-        else:
+        elif not kernels.fits(data, self.sensor.frame_shape):
             flat = self.float_stack(data).reshape(self.n, -1)
             w = self._w3 if flat.dtype == np.float64 else self._w332
             m = (flat @ w).astype(np.float64)                   # (n, 3)

@@ -19,6 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
+try:                                   # optional: the 'fast' extra (compiled Poisson noise)
+    import numba
+except ImportError:                    # pragma: no cover - exercised where it is absent
+    numba = None
+
 POISSON_FLOOR = 1e-9      # expected photons below which a pixel is not drawn (background 0)
 UINT16_MAX = 65535
 DTYPES = ("uint16", "float32", "float64")
@@ -45,9 +50,56 @@ def _photon_map(images, photons, per_field: bool) -> np.ndarray:
     return img * ph
 
 
-def poisson(lam: np.ndarray, rng: np.random.Generator, floor: float = 0.0) -> np.ndarray:
+INVERSION_MAX = 12.0      # compiled path: inversion below this mean, numba's PTRS above
+
+
+def _poisson_fill(lam, elam, floor, seed, out):
+    """Compiled: ``out[i] ~ Poisson(lam[i])`` (0 where ``lam <= floor``; ``elam`` is
+    ``exp(-lam)``, computed vectorised by the caller): sequential-search inversion for small means with xorshift64* uniforms (53 bits), numba's own sampler
+    (seeded from the same seed) above ``INVERSION_MAX``."""
+    np.random.seed(seed)
+    x = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) | np.uint64(1)
+    mul = np.uint64(0x2545F4914F6CDD1D)
+    s12, s25, s27, s11 = np.uint64(12), np.uint64(25), np.uint64(27), np.uint64(11)
+    for i in range(lam.size):
+        m = lam[i]
+        if m <= floor:
+            out[i] = 0
+        elif m < INVERSION_MAX:
+            x ^= x >> s12
+            x ^= x << s25
+            x ^= x >> s27
+            u = np.float64((x * mul) >> s11) * (1.0 / 9007199254740992.0)
+            p = elam[i]
+            f = p
+            k = 0
+            while u > f and k < 1000:
+                k += 1
+                p *= m / k
+                f += p
+            out[i] = k
+        else:
+            out[i] = np.random.poisson(m)
+
+
+_poisson_fast = (numba.njit(cache=True, nogil=True)(_poisson_fill) if numba is not None
+                 else None)
+FAST_AVAILABLE = _poisson_fast is not None
+
+
+def poisson(lam: np.ndarray, rng: np.random.Generator, floor: float = 0.0,
+            fast: bool = False) -> np.ndarray:
     """Exact Poisson draws of mean ``lam`` (any shape) as int64; pixels with
-    ``lam <= floor`` are set to 0 without a draw (``floor = 0``: only exact zeros)."""
+    ``lam <= floor`` are set to 0 without a draw (``floor = 0``: only exact zeros).
+
+    ``fast``: the compiled sampler (numba, seeded from ``rng``: the same seed gives the same
+    draws; the same distribution as numpy's, other draws), ~3x cheaper on a full pupil;
+    numpy's where numba is absent."""
+    if fast and FAST_AVAILABLE:
+        flat = np.ascontiguousarray(lam, dtype=np.float64).reshape(-1)
+        out = np.empty(flat.size, dtype=np.int64)
+        _poisson_fast(flat, np.exp(-flat), float(floor), int(rng.integers(2**31 - 1)), out)
+        return out.reshape(np.shape(lam))
     flat = lam.reshape(-1)
     idx = np.flatnonzero(flat > floor)
     out = np.zeros(flat.size, dtype=np.int64)
@@ -59,7 +111,8 @@ def poisson(lam: np.ndarray, rng: np.random.Generator, floor: float = 0.0) -> np
 
 def expose(images, photons, rng: np.random.Generator | None = None, read_noise_e: float = 0.0,
            background_e: float = 0.0, subtract_background: bool = True, dtype: str = "uint16",
-           noise_free: bool = False, per_field: bool = False, return_clipped: bool = False):
+           noise_free: bool = False, per_field: bool = False, return_clipped: bool = False,
+           fast: bool = False):
     """Turn photon-normalised images into detector counts.
 
     Args:
@@ -74,6 +127,7 @@ def expose(images, photons, rng: np.random.Generator | None = None, read_noise_e
         per_field: ``photons`` is the expected count inside the field (see module doc).
         return_clipped: also return the number of pixels clipped at 65535 (saturated) and
             at 0 (uint16 only; both 0 for float output) as a dict.
+        fast: compiled Poisson draws (:func:`poisson`), same distribution, other draws.
     Returns:
         ``counts`` of shape ``images.shape`` and the requested dtype (a new array; inputs
         are never modified), or ``(counts, {"saturated": int, "negative": int})``.
@@ -92,7 +146,7 @@ def expose(images, photons, rng: np.random.Generator | None = None, read_noise_e
         if not isinstance(rng, np.random.Generator):
             raise ValueError("rng must be a numpy.random.Generator unless noise_free=True")
         floor = POISSON_FLOOR if background_e == 0 else 0.0
-        counts = poisson(lam, rng, floor)
+        counts = poisson(lam, rng, floor, fast)
         integer = read_noise_e == 0 and not (subtract_background and background_e > 0)
         if integer and dtype == "uint16":                 # fast path: no float round trip
             sat = 0

@@ -154,10 +154,12 @@ class Simulator:
         displacements: optional source of the true displacements when
             ``config.turbulence`` is on: any object with ``tilts_at(index) -> (n_valid, 2)``
             pixels (default a :class:`turbulence.FrozenFlow` seeded from ``config.seed``).
+        fast: compiled Poisson noise (``detector.poisson(fast=True)``: the same distribution,
+            other draws; the same seed still gives the same frames). For live graphs.
     """
 
     def __init__(self, sensor: Sensor, config: SimulationConfig | None = None, sodium_model=None,
-                 displacements=None):
+                 displacements=None, fast: bool = False):
         if not isinstance(sensor, Sensor):
             raise ValueError(f"sensor must be a Sensor, got {type(sensor).__name__}")
         self.sensor = sensor
@@ -165,10 +167,11 @@ class Simulator:
         if not isinstance(self.config, SimulationConfig):
             raise ValueError("config must be a SimulationConfig")
         self.layout = layout(sensor)
+        self.fast = bool(fast)
         ss = np.random.SeedSequence(self.config.seed)
         turb_ss, prof_ss, noise_ss = ss.spawn(3)
         self._noise_rng = np.random.default_rng(noise_ss)
-        self._profile_rng = np.random.default_rng(prof_ss)
+        self._profile_ss = prof_ss
         self._turb_seed = turb_ss
         self._turb = displacements
         self._model = sodium_model
@@ -212,7 +215,11 @@ class Simulator:
         return self._model
 
     def profile_at(self, index: int) -> tuple[np.ndarray, object]:
-        """``(density (K,), key)`` for frame ``index``; ``key`` changes when it does."""
+        """``(density (K,), key)`` for frame ``index``; ``key`` changes when it does.
+
+        A function of ``index`` alone (whatever was asked before): a random profile is drawn
+        from a stream of its own per epoch of ``random_every`` frames (was one stream drawn
+        in call order, so asking for an earlier frame gave another profile)."""
         c = self.config
         if self._static is not None:
             return self._static, "static"
@@ -221,9 +228,12 @@ class Simulator:
             return self._evolving.at(t), ("evolving", index)
         epoch = index // c.random_every
         if self._random_epoch != epoch:
-            self._random_epoch = epoch
-            self._random_profile = self.model().sample(self._profile_rng, 1, self.altitude_m)[0]
+            ss = self._profile_ss
+            rng = np.random.default_rng(np.random.SeedSequence(
+                ss.entropy, spawn_key=tuple(ss.spawn_key) + (int(epoch),)))
+            self._random_profile = self.model().sample(rng, 1, self.altitude_m)[0]
             self._random_profile.setflags(write=False)
+            self._random_epoch = epoch
         return self._random_profile, ("random", epoch)
 
     # -- displacements -------------------------------------------------------------------
@@ -247,8 +257,10 @@ class Simulator:
             self._spots_key = key
         return self._spots.images(truth)
 
-    def next(self) -> Frame:
-        """The next frame."""
+    def next(self, out: np.ndarray | None = None) -> Frame:
+        """The next frame; with ``out`` (a ``sensor.frame_shape`` array of the sensor's dtype,
+        e.g. a transport's loaned buffer) the frame is written there and ``Frame.frame`` is
+        ``out``."""
         i = self.index
         truth = self.truth_at(i)
         density, key = self.profile_at(i)
@@ -257,13 +269,25 @@ class Simulator:
         counts, clipped = expose(images, s.photons, self._noise_rng, s.read_noise_e, s.background_e,
                                  self.config.subtract_background, s.dtype,
                                  noise_free=not self.config.noise, per_field=self.config.per_field,
-                                 return_clipped=True)
-        frame = stack_to_frame(counts, self.layout)
+                                 return_clipped=True, fast=self.fast)
+        frame = stack_to_frame(counts, self.layout) if out is None else self._into(counts, out)
         self.index += 1
         return Frame(frame, truth, i, i / s.frame_rate_hz, trunc, density, self.altitude_m,
                      clipped["saturated"])
 
-    __next__ = next
+    def __next__(self) -> Frame:
+        return self.next()
+
+    def _into(self, stack: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``stack`` (n, p, p) written into the frame ``out`` (zero outside the pupil)."""
+        s, lay = self.sensor, self.layout
+        if out.shape != s.frame_shape or out.dtype != np.dtype(s.dtype):
+            raise ValueError(f"out must be {s.frame_shape} {s.dtype}, got {out.shape} {out.dtype}")
+        g, p = lay.grid, s.pixels
+        blocks = out.reshape(g, p, g, p).swapaxes(1, 2)          # a view of out
+        blocks[lay.valid] = stack
+        blocks[~lay.valid] = 0
+        return out
 
     def next_batch(self, m: int) -> list[Frame]:
         """The next ``m`` frames, rendered together.
@@ -301,7 +325,8 @@ class Simulator:
         images, trunc = cached[1].images(truths.reshape(m * n, 2))
         counts = expose(images, s.photons, self._noise_rng, s.read_noise_e, s.background_e,
                         self.config.subtract_background, s.dtype, noise_free=not self.config.noise,
-                        per_field=self.config.per_field).reshape(m, n, s.pixels, s.pixels)
+                        per_field=self.config.per_field, fast=self.fast
+                        ).reshape(m, n, s.pixels, s.pixels)
         trunc = trunc.reshape(m, n)
         sat = (np.count_nonzero(counts == UINT16_MAX, axis=(1, 2, 3)) if s.dtype == "uint16"
                else np.zeros(m, dtype=int))

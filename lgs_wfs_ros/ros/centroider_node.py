@@ -36,6 +36,7 @@ from ..centroiding import ALGORITHMS, options
 from ..centroiding.ann import ModelNotFoundError
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
+from ..transport import TRANSPORTS, frames as frame_transport, shm
 from .spinning import DRAIN, run_node, take_queued
 from . import health, parameters, picture, qos
 
@@ -50,11 +51,15 @@ class FrameCounters:
 
     def __init__(self):
         self.received = self.processed = self.dropped = self.rejected = 0
+        self.computed = self.published = 0      # centroids computed, slopes published
+        self.transport_lost = 0                 # shm: frames sent that never arrived (sequence)
         self.last_reason = ""
 
     def as_dict(self) -> dict:
         return {"received": self.received, "processed": self.processed,
-                "dropped": self.dropped, "rejected": self.rejected}
+                "dropped": self.dropped, "rejected": self.rejected,
+                "taken": self.received, "computed": self.computed,
+                "published": self.published, "transport_lost": self.transport_lost}
 
 # frames up to this many pixels (the paper's single subaperture, small test pupils) are
 # centroided in batches when several are queued
@@ -85,6 +90,9 @@ class CentroiderNode(Node):
         parameters.declare(self, "picture_range_px", 2.0, "Slope shown at full colour in "
                            "slopes_picture (blue -range, white 0, red +range), pixels.",
                            low=1e-3, high=100.0)
+        parameters.declare(self, "frame_transport", "ros", "Where frames come from: 'ros' (the "
+                           "frame topic) or 'shm' (iceoryx2 shared memory, read in place).",
+                           choices=TRANSPORTS, read_only=True)
 
         self.counters = FrameCounters()
         self.health = health.Health(self, self._diagnostic_values)
@@ -125,7 +133,9 @@ class CentroiderNode(Node):
         self._recent = collections.OrderedDict()     # stamp -> slopes grid, while measured
         self._next_error = 0.0
         self.create_timer(1.0, self._follow_error_subscribers)
-        self._frame_sub = None
+        self._frame_sub = self._inlet = None
+        self._sensor_id = shm.sensor_id(self.sensor)
+        self._shm = self.get_parameter("frame_transport").value == "shm"
         self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
         self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
@@ -214,6 +224,7 @@ class CentroiderNode(Node):
         self._subscribe_frames(sensor)
         with self._lock:
             self.sensor, self.layout, self.centroider = sensor, geometry.layout(sensor), centroider
+            self._sensor_id = shm.sensor_id(sensor)
             self._last_stamp = None
         self.problem = ""
         self._announce("new sensor")
@@ -221,6 +232,14 @@ class CentroiderNode(Node):
     def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
         frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
+        if self._shm:       # frames come through shared memory: one inlet, never recreated
+            if self._inlet is None:      # (that would lose its queue; the depth is the most
+                try:                     # the service allows, whatever the sensor)
+                    self._inlet = frame_transport.FrameInlet(
+                        self.resolve_topic_name("frame"), self._on_shm_frames, shm.MAX_DEPTH)
+                except shm.ShmUnavailable as exc:
+                    raise ValueError(str(exc)) from exc
+            return
         profile = qos.frame_qos(sensor)
         if self._frame_sub is not None:
             if self._frame_sub.qos_profile.depth == profile.depth:
@@ -245,7 +264,43 @@ class CentroiderNode(Node):
         batch = [self._accept(cdr)]
         for queued in take_queued(self._frame_sub, Image, DRAIN):
             batch.append(self._accept(queued[0]))
-        batch = [b for b in batch if b is not None]
+        self._centroid_and_publish([b for b in batch if b is not None])
+
+    def _on_shm_frames(self, frames, lost: int):
+        """Frames read in place from shared memory (the inlet's thread): ``[(stamp_ns,
+        image, sensor_id)]``, valid during this call; small ones centroided together."""
+        self.counters.transport_lost = lost
+        accepted = []
+        for stamp_ns, image, sensor_id in frames:
+            self.counters.received += 1
+            if sensor_id and sensor_id != self._sensor_id:
+                self._await_sensor(sensor_id)
+            if sensor_id and sensor_id != self._sensor_id:
+                self._reject(f"frame of another sensor (id {sensor_id:x}, expected "
+                             f"{self._sensor_id:x}): its description has not arrived yet")
+                continue
+            ok = self._check(stamp_ns, image)
+            if ok is not None:
+                accepted.append(ok)
+        try:
+            self._centroid_and_publish(accepted)
+        except Exception:      # a publish after SIGINT shut the context down
+            if self.context.ok():
+                raise
+
+    def _await_sensor(self, sensor_id: int, timeout_s: float = 2.0):
+        """Shared-memory frames can overtake the sensor description (a ROS topic): wait for
+        it once per unknown sensor id (this is the inlet's thread; the frames queue)."""
+        waited = self.__dict__.setdefault("_sensor_ids_waited", set())
+        if sensor_id in waited:
+            return
+        waited.add(sensor_id)
+        deadline = time.monotonic() + timeout_s
+        while sensor_id != self._sensor_id and time.monotonic() < deadline:
+            time.sleep(0.005)
+
+    def _centroid_and_publish(self, batch):
+        """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order."""
         if not batch:
             return
         with self._lock:
@@ -267,9 +322,11 @@ class CentroiderNode(Node):
                         self._reject(f"{centroider.name} failed on a frame", repr(exc), health.ERROR)
                         continue
                 results.append((stamp_ns, geometry.slopes_to_grid(s, layout)))
+        self.counters.computed += len(results)
         for stamp_ns, grid in results:
             self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
             self.counters.processed += 1
+            self.counters.published += 1
         if results:
             self._maybe_picture(*results[-1])
             if self._truth_sub is not None:
@@ -336,6 +393,11 @@ class CentroiderNode(Node):
         if encoding not in ("mono16", "32FC1"):
             self._reject(f"encoding {encoding}", "expected mono16 or 32FC1")
             return None
+        return self._check(stamp_ns, image)
+
+    def _check(self, stamp_ns: int, image):
+        """``(stamp_ns, image)`` if the frame fits the sensor and comes after the last one;
+        None otherwise (counted as rejected; stamp gaps counted as dropped)."""
         with self._lock:
             if image.shape != self.sensor.frame_shape:
                 if not self._sensor_received:
@@ -375,6 +437,11 @@ class CentroiderNode(Node):
     def _diagnostic_values(self) -> dict:
         return {**self.counters.as_dict(), "algorithm": self.get_parameter("algorithm").value,
                 "frame_shape": "x".join(map(str, self.sensor.frame_shape))}
+    def destroy_node(self):
+        if self._inlet is not None:          # stop reading shared memory first
+            self._inlet.close()
+            self._inlet = None
+        return super().destroy_node()
 
     def _log_counters(self):
         """The counters every log_period_s, when they changed (silent while idle)."""

@@ -23,6 +23,8 @@ from std_msgs.msg import String
 
 from .. import bags
 from ..sensor import Sensor, SensorError
+from ..transport import shm
+from .frame_transport import declare_frame_transport, make_outlet
 from .spinning import run_node
 from . import health, parameters, qos
 
@@ -75,6 +77,7 @@ class PlayerNode(Node):
                            "repeated stamps).")
         parameters.declare(self, "start_delay_s", 1.0, "Wait for subscribers this long first.",
                            low=0.0, high=60.0)
+        declare_frame_transport(self)
         self.add_on_set_parameters_callback(self._validate)
 
         path = self.get_parameter("bag").value
@@ -85,9 +88,12 @@ class PlayerNode(Node):
             raise bags.BagError(f"{path} has no frame topic (topics: {sorted(self.reader.topics())})")
         self.sources = {kinds[k][0]: k for k in REPLAYED if k in kinds}
         profiles = {k: qos.for_topic(k) for k in REPLAYED}
-        profiles["frame"] = qos.frame_qos(self._bag_sensor())
+        sensor = self._bag_sensor()
+        profiles["frame"] = qos.frame_qos(sensor)
         self.pubs = {k: self.create_publisher(MSG_CLASSES[kinds[k][1]], k, profiles[k])
                      for k in REPLAYED if k in kinds}
+        self._outlet = make_outlet(self, self.pubs["frame"], sensor or Sensor())
+        self._sensor_id = shm.sensor_id(sensor) if sensor is not None else 0
         self.published = {k: 0 for k in self.pubs}
         self.answers: dict[str, int] = {}
         self._answer = threading.Condition()
@@ -207,7 +213,11 @@ class PlayerNode(Node):
                     delay = due - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
-            self.pubs[kind].publish(cdr if isinstance(cdr, bytes) else bytes(cdr))
+            if kind == "frame" and self._outlet.shm is not None:   # decoded into the loan
+                self._outlet.publish(bags.decode_image(cdr)[3], stamp, self._sensor_id,
+                                     stop=self._stop.is_set)
+            else:
+                self.pubs[kind].publish(cdr if isinstance(cdr, bytes) else bytes(cdr))
             self.published[kind] += 1
             if kind == "frame":
                 sent += 1
@@ -241,6 +251,11 @@ class PlayerNode(Node):
         with self._answer:
             self._answer.notify_all()
         self._thread.join(timeout=5)
+        self._outlet.close()
+
+    def destroy_node(self):
+        self.stop()                          # the frame thread and its shared memory first
+        return super().destroy_node()
 
 
 def _finish(node) -> None:

@@ -30,6 +30,8 @@ from .. import bags
 from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
+from ..transport import shm
+from .frame_transport import declare_frame_transport, make_outlet
 from .spinning import run_node
 from . import health, parameters, qos
 
@@ -97,6 +99,7 @@ class SimulatorNode(Node):
                            "listen to frame before the first frame.", low=0, high=1000)
         parameters.declare(self, "start_delay_s", 0.0, "Extra wait before the first frame, s.",
                            low=0.0, high=600.0)
+        declare_frame_transport(self)
 
         self._lock = threading.Lock()
         self._pending = None
@@ -105,6 +108,7 @@ class SimulatorNode(Node):
         self.add_post_set_parameters_callback(self._apply)
 
         self._frame_pub = self.create_publisher(Image, "frame", qos.frame_qos(self.sim.sensor))
+        self._outlet = make_outlet(self, self._frame_pub, self.sim.sensor)
         self._truth_pub = self.create_publisher(Image, "true_slopes", qos.SLOPES)
         self._sensor_pub = self.create_publisher(String, "sensor", qos.LATCHED)
         self.published = 0
@@ -131,7 +135,7 @@ class SimulatorNode(Node):
                 sensor = Sensor.paper_single(sensor.detector, **{
                     k: val for k, val in fields.items() if k != "detector"})
             config = SimulationConfig(**{n: v[n] for n in CONFIG_PARAMS})
-            return Simulator(sensor, config)
+            return Simulator(sensor, config, fast=True)      # compiled noise where numba is
         except (SensorError, TypeError) as exc:
             raise ValueError(str(exc)) from exc
 
@@ -165,7 +169,7 @@ class SimulatorNode(Node):
     # -- publishing -------------------------------------------------------------------
     def _wait_to_start(self):
         need = self.get_parameter("wait_for_subscribers").value
-        while need and self._frame_pub.get_subscription_count() < need and not self._stop.is_set():
+        while need and self._outlet.subscriber_count() < need and not self._stop.is_set():
             time.sleep(0.05)
         delay = self.get_parameter("start_delay_s").value
         self._stop.wait(delay)
@@ -190,19 +194,25 @@ class SimulatorNode(Node):
             budget = self.get_parameter("frames").value
             if budget and self.published >= budget:
                 break
+            self._outlet.wait_for_room(self._stop.is_set)    # lockstep: before rendering
             with self._lock:
                 sim = self.sim
                 if sim is not source:                      # new parameters: drop the old batch
                     queue, source = [], sim
+                    sensor_id = shm.sensor_id(sim.sensor)
                 if not queue:
-                    queue = self._make_frames(sim, budget - self.published if budget else None)
-                frame = queue.pop(0)
+                    queue = self._make_frames(sim, budget - self.published if budget else None,
+                                              self._outlet)
+                frame, buf = queue.pop(0)
                 layout = sim.layout
                 period_s = 1.0 / sim.sensor.frame_rate_hz
             if first is None:          # the schedule starts with the first frame, not its set-up
                 due = time.monotonic()
             truth = geometry.slopes_to_grid(frame.truth, layout)
-            self._frame_pub.publish(bags.encode_image(frame.frame, stamp_ns))
+            if buf is not None:                            # rendered straight into the loan
+                self._outlet.send(buf, stamp_ns, sensor_id)
+            else:
+                self._outlet.publish(frame.frame, stamp_ns, sensor_id, stop=self._stop.is_set)
             self._truth_pub.publish(bags.encode_image(truth, stamp_ns))
             self.published += 1
             last = time.monotonic()
@@ -242,18 +252,27 @@ class SimulatorNode(Node):
                 "detector": s.detector, "frame_rate_hz": s.frame_rate_hz}
 
     @staticmethod
-    def _make_frames(sim, left):
-        """The next frames: a batch of up to ``BATCH_SUBAPERTURES`` spots rendered together
-        for a small sensor (the paper's single subaperture: ~0.3 ms instead of ~1 ms per
-        frame), one frame at a time for the full pupil."""
+    def _make_frames(sim, left, outlet):
+        """The next ``[(frame, loaned buffer or None)]``: a batch of up to
+        ``BATCH_SUBAPERTURES`` spots rendered together for a small sensor (the paper's single
+        subaperture: ~0.3 ms instead of ~1 ms per frame), one frame at a time for the full
+        pupil, rendered straight into the outlet's buffer (shared memory with ``shm``)."""
         k = max(1, min(BATCH_FRAMES, BATCH_SUBAPERTURES // sim.layout.n_valid))
         if left is not None:
             k = max(1, min(k, left))
-        return sim.next_batch(k) if k > 1 else [sim.next()]
+        if k > 1:
+            return [(f, None) for f in sim.next_batch(k)]
+        buf = outlet.loan(sim.sensor.frame_shape, sim.sensor.dtype)
+        return [(sim.next(out=buf.image), buf)]
 
     def stop(self):
         self._stop.set()
         self._thread.join(timeout=10)
+        self._outlet.close()
+
+    def destroy_node(self):
+        self.stop()                          # the frame thread and its shared memory first
+        return super().destroy_node()
 
 
 def _published(node) -> bool:

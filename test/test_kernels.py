@@ -1,0 +1,78 @@
+"""Compiled single-pass kernels (centroiding.kernels) against the numpy implementations."""
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros.centroiding import kernels, make_centroider
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+
+pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+
+SENSORS = [Sensor(), Sensor(detector="polar"), Sensor(diameter_m=4.0, obstruction_m=0.5,
+                                                      n_subaps=8, pixels=12)]
+
+
+def _frame(sensor, seed, high=False):
+    rng = np.random.default_rng(seed)
+    f = rng.poisson(40, sensor.frame_shape)
+    if high:                  # saturated blocks: the integer sums must not overflow
+        f[: sensor.pixels * 3] = 65535
+    return f.astype(np.uint16)
+
+
+@pytest.mark.parametrize("sensor", SENSORS, ids=["cartesian", "polar", "small_p12"])
+def test_cog_moments_equal_the_numpy_products(sensor):
+    cog = make_centroider("cog", sensor)
+    for seed, high in ((1, False), (2, True)):
+        frame = _frame(sensor, seed, high)
+        stack = geometry.frame_to_stack(frame, geometry.layout(sensor)).reshape(cog.n, -1)
+        want = stack.astype(np.float64) @ cog._w3
+        got = kernels.cog_moments(frame, kernels.origins(cog), cog.p, cog.centre)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-6)
+
+
+@pytest.mark.parametrize("sensor", SENSORS, ids=["cartesian", "polar", "small_p12"])
+def test_cog_with_the_kernel_equals_cog_without(sensor, monkeypatch):
+    cog = make_centroider("cog", sensor)
+    frames = [_frame(sensor, s) for s in (3, 4)]
+    fast = [cog.centroid(f) for f in frames]
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    slow = [cog.centroid(f) for f in frames]
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+        assert np.isfinite(a).all()
+
+
+def test_block_contract_equals_einsum():
+    sensor = SENSORS[1]
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(5)
+    w = rng.normal(size=(lay.n_valid, 3, sensor.pixels ** 2)).astype(np.float32)
+    frame = _frame(sensor, 6, high=True)
+    flat = geometry.frame_to_stack(frame, lay).reshape(lay.n_valid, -1).astype(np.float64)
+    want = np.einsum("nkp,np->nk", w.astype(np.float64), flat)
+    got = kernels.block_contract(frame, kernels.block_origins(lay), w)
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-3 * np.abs(want).max() * 1e-3)
+
+
+def test_cmf_model_with_the_kernel_equals_cmf_without(monkeypatch):
+    sensor = SENSORS[1]
+    cmf = make_centroider("cmf", sensor, weighting="model", reference="model")
+    frame = _frame(sensor, 7)
+    fast = cmf.centroid(frame)
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    slow = cmf.centroid(frame)
+    np.testing.assert_allclose(fast, slow, rtol=1e-4, atol=1e-5)
+
+
+def test_only_plain_integer_frames_take_the_kernel():
+    s = SENSORS[0]
+    f = _frame(s, 8)
+    assert kernels.fits(f, s.frame_shape)
+    assert not kernels.fits(f.astype(np.float32), s.frame_shape)
+    assert not kernels.fits(f[:, ::-1], s.frame_shape)           # columns not contiguous
+    assert not kernels.fits(f[:-16], s.frame_shape)
+    ro = f.copy()
+    ro.flags.writeable = False                                   # a shared-memory view is fine
+    assert kernels.fits(ro, s.frame_shape)

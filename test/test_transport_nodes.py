@@ -1,0 +1,135 @@
+"""frame_transport 'shm' in the nodes: simulator and player send frames through shared memory,
+the centroider reads them in place; slopes join truths by stamp exactly as with 'ros', the ROS
+frame topic keeps a decimated copy, and the counters account for every frame."""
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+from lgs_wfs_ros import bags
+from lgs_wfs_ros.centroiding import make_centroider
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+from lgs_wfs_ros.transport import shm
+
+pytestmark = pytest.mark.skipif(not shm.AVAILABLE, reason="iceoryx2 not installed ('shm' extra)")
+
+REMAP = ["--ros-args", "-r", "frame:=/wfs/frame", "-r", "sensor:=/wfs/sensor"]
+SMALL = dict(diameter_m=4.0, obstruction_m=0.5, n_subaps=8)
+
+
+def _listen(ros, topics):
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.ros import qos
+    got = {t: {} for t in topics}
+    node = ros.add(Node("listener", context=ros.context))
+    for t in topics:
+        node.create_subscription(
+            Image, t, lambda cdr, t=t: got[t].__setitem__(*bags.decode_image(cdr)[::3]),
+            qos.for_topic(t) if not t.endswith("frame") else qos.FRAME, raw=True)
+    return got
+
+
+@pytest.mark.parametrize("publish_hz", [1e5, 10.0])
+def test_simulator_to_centroider_through_shared_memory(ros, publish_hz):
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
+
+    n = 40
+    got = _listen(ros, ["/cog/slopes", "/wfs/true_slopes", "/wfs/frame"])
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
+                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
+    overrides = [Parameter(k, value=v) for k, v in SMALL.items()] + [
+        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
+        Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=1.0),
+        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
+        Parameter("frame_publish_hz", value=publish_hz)]
+    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=overrides))
+    assert wait_for(lambda: sim.finished.is_set(), timeout=60)
+    assert wait_for(lambda: len(got["/cog/slopes"]) == n and len(got["/wfs/true_slopes"]) == n,
+                    timeout=20)
+    assert sorted(got["/cog/slopes"]) == sorted(got["/wfs/true_slopes"])   # joined by stamp
+    c = cog.counters.as_dict()
+    assert (c["taken"], c["computed"], c["published"]) == (n, n, n)
+    assert c["dropped"] == c["rejected"] == c["transport_lost"] == 0
+    assert sim._outlet.counters()["undelivered"] == 0
+    frames = got["/wfs/frame"]
+    sensor = sim.sim.sensor
+    if publish_hz >= 100:       # every frame also on ROS: the slopes are the library's
+        assert wait_for(lambda: len(frames) == n, timeout=10), (len(frames), sim._outlet.counters())
+        lib, lay = make_centroider("cog", sensor), geometry.layout(sensor)
+        for stamp, frame in frames.items():
+            np.testing.assert_allclose(geometry.grid_to_slopes(got["/cog/slopes"][stamp], lay),
+                                       lib.centroid(frame), atol=1e-5)
+    else:                       # 0.4 s of frames at 10 Hz on ROS: 4 or 5, not 40
+        assert 2 <= len(frames) <= 6 and set(frames) <= set(got["/wfs/true_slopes"])
+
+
+def test_player_through_shared_memory(ros, tmp_path):
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import ContractBagWriter
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    sensor = Sensor(**SMALL)
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(3)
+    frames = {1000 + 10 * k: rng.poisson(50, sensor.frame_shape).astype(np.uint16)
+              for k in range(25)}
+    path = tmp_path / "in.mcap"
+    with ContractBagWriter(path, sensor) as bag:
+        for stamp, f in frames.items():
+            bag.frame(stamp, f)
+            bag.truth(stamp, np.zeros((lay.n_valid, 2)))
+    got = _listen(ros, ["/cog/slopes"])
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
+                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
+    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(path)), Parameter("rate", value="500"),
+        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
+        Parameter("start_delay_s", value=1.0)]))
+    assert wait_for(lambda: player.finished.is_set(), timeout=60)
+    assert wait_for(lambda: len(got["/cog/slopes"]) == 25, timeout=10)
+    lib = make_centroider("cog", sensor)
+    for stamp, f in frames.items():
+        np.testing.assert_allclose(geometry.grid_to_slopes(got["/cog/slopes"][stamp], lay),
+                                   lib.centroid(f), atol=1e-5)
+    assert cog.counters.transport_lost == 0 and cog.counters.rejected == 0
+
+
+def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
+    """simulator --shm--> centroider, recorder on the ROS topics: the bag loads with the
+    analysis reader, every slope joins its truth by stamp, and the decimated frames are
+    frames of the run (their stamps among the truths')."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import joined, load_bag
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
+
+    out, n = tmp_path / "shm.mcap", 60
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("discover", value=False),
+        Parameter("topics", value=["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor",
+                                   "/cog/slopes", "/cog/centroider"])]))
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
+                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
+    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in SMALL.items()] + [
+        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
+        Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=1.5),
+        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
+        Parameter("frame_publish_hz", value=20.0)]))
+    assert wait_for(lambda: sim.finished.is_set(), timeout=60)
+    assert wait_for(lambda: cog.counters.published == n, timeout=20)
+    assert wait_for(lambda: rec.recorded.get("/cog/slopes", 0) == n, timeout=20)
+    rec.close()
+    data = load_bag(out, max_frames=None)
+    assert len(data.truth) == n and len(data.segments) == 1
+    stamps, est, truth, join = joined(data.truth, data.segments[0].slopes)
+    assert len(stamps) == n and np.isfinite(est).any()
+    assert 6 <= data.frame_count <= 20                       # 20 Hz of a 0.6 s run
+    assert set(data.frames.stamps) <= set(data.truth.stamps)
+    assert data.frames.data.shape[1:] == sim.sim.sensor.frame_shape
