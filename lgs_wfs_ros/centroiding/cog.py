@@ -73,7 +73,9 @@ class CoG(Centroider):
         with np.errstate(divide="ignore", invalid="ignore"):
             out = m[:, 1:] / denom[:, None]
         if self.pupil is not None:
-            if self.pupil.observe(rows[self.valid_rows] if flat is None else flat, ok):
+            seen = (self.pupil.observe_rows(rows, self.valid_rows) if flat is None
+                    else self.pupil.observe(flat, ok))
+            if seen:
                 self._bias = self.pupil.cog_bias()
             out -= self._bias
         return self.finish(out, ok)

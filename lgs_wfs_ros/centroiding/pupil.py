@@ -91,6 +91,7 @@ class PupilCalibration:
     def reset(self) -> None:
         """Forget everything seen: back to the prior profile."""
         self._acc = np.zeros((self.n, self.sensor.pixels ** 2))
+        self._acc_rows = None                    # (G*G, p*p) float32, see observe_rows
         self._count = np.zeros(self.n)
         self._frames = 0
         self.state = None
@@ -155,10 +156,30 @@ class PupilCalibration:
             return True
         return False
 
+    def observe_rows(self, rows: np.ndarray, valid_rows: np.ndarray) -> bool:
+        """As :meth:`observe` for every block of a frame, ``rows (G*G, p*p)`` float32 (a
+        centroider's cast-and-cut buffer), valid ones at ``valid_rows (n,)``: one float32
+        addition, no gather (the cheapest per-frame path). A subaperture with a bad pixel
+        in a period is left out of that period's mean."""
+        if self._frames % self.stride == 0:
+            if self._acc_rows is None or self._acc_rows.shape != rows.shape:
+                self._acc_rows = np.zeros(rows.shape, dtype=np.float32)
+                self._rows_index = valid_rows
+            np.add(self._acc_rows, rows, out=self._acc_rows)
+            self._count += 1
+        self._frames += 1
+        if self._frames % self.period == 0:
+            self.refit()
+            return True
+        return False
+
     # -- fit --------------------------------------------------------------------------
     def refit(self) -> None:
         """Blend the accumulated mean images into the average and refit the profile."""
-        good = self._count > 0
+        if self._acc_rows is not None:
+            self._acc += self._acc_rows[self._rows_index]
+            self._acc_rows[:] = 0.0
+        good = (self._count > 0) & np.isfinite(self._acc).all(axis=1)
         if not good.any():
             return
         mean = self._acc / np.maximum(self._count, 1)[:, None] - self.background

@@ -20,7 +20,7 @@ Contents
 - :class:`EvolvingProfile`: a profile interpolated linearly in time between lidar frames.
 - :func:`measured_split`, :func:`training_model`: the one split of the measured night
   (train 0-65, test 66-87, contiguous) and the prior fitted on the train block only.
-- :func:`unseen_profiles`, :data:`FAMILIES`: evolving test-block profiles moved, stretched,
+- :func:`unseen_profiles`, :func:`unseen_sequence`, :data:`FAMILIES`: evolving test-block profiles moved, stretched,
   squeezed or given a sporadic layer: skies no training prior holds.
 
 See ``docs/sodium.md`` for how the model was fitted and the numbers it gives.
@@ -894,6 +894,46 @@ def family_grid() -> np.ndarray:
     return np.linspace(65e3, 135e3, 2801)
 
 
+def unseen_sequence(family: str, n_frames: int, frame_rate_hz: float, seed: int = 0,
+                    seconds_per_profile: float = 1.0) -> tuple[EvolvingProfile, float]:
+    """The knots of an unseen-profile sequence and its start time.
+
+    Returns ``(evolving, t0_s)``: ``evolving.at_many(t0_s + k / frame_rate_hz)`` is frame
+    k's profile (:func:`unseen_profiles`). The knots are the family's map applied to each
+    measured test-block profile; the map is linear in the density, so interpolating the
+    mapped knots in time equals mapping the interpolated profile, and a frame's spot is the
+    same blend of the knots' spots (what the accuracy benchmark renders).
+    """
+    if family not in FAMILIES:
+        raise ValueError(f"unknown profile family {family!r}; choose one of {FAMILIES}")
+    if not (isinstance(n_frames, (int, np.integer)) and n_frames >= 1 and frame_rate_hz > 0):
+        raise ValueError("need n_frames >= 1 (integer) and frame_rate_hz > 0")
+    rng = np.random.default_rng([int(seed), FAMILIES.index(family)])
+    h_m, prof = load_measured()
+    test = prof[measured_split("test", prof.shape[0])]
+    span = n_frames / frame_rate_hz
+    duration = (test.shape[0] - 1) * seconds_per_profile
+    t0 = rng.uniform(0.0, max(duration - span, 0.0))
+    c0 = float(np.mean(centroid_altitude(h_m, EvolvingProfile(h_m, test, seconds_per_profile)
+                                         .at_many(t0 + np.linspace(0, span, 8)))))
+    h = family_grid()
+    scale, target = 1.0, c0
+    if family == "high":
+        target = rng.uniform(100e3, 105e3)
+    elif family == "broad":
+        scale = rng.uniform(2.0, 2.5)
+    elif family == "narrow":
+        scale = rng.uniform(0.15, 0.25)
+    # rho_new(h) = rho_src(c0 + (h - target) / scale) / scale: the same map for every knot
+    knots = _interp_rows(h_m, test, c0 + (h - target) / scale) / scale
+    if family == "sporadic":
+        frac = rng.uniform(0.3, 0.5)
+        layer = gaussian_profile(h, rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
+        mass = (knots * _weights(h)).sum(axis=1, keepdims=True)
+        knots = knots + layer[None, :] * (mass * frac / (1 - frac) / (layer * _weights(h)).sum())
+    return EvolvingProfile(h, knots, seconds_per_profile), t0
+
+
 def unseen_profiles(family: str, n_frames: int, frame_rate_hz: float, seed: int = 0,
                     seconds_per_profile: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """A sequence of unseen profiles, one per frame.
@@ -908,36 +948,8 @@ def unseen_profiles(family: str, n_frames: int, frame_rate_hz: float, seed: int 
         ``(altitude_m (K,), density (n_frames, K))`` on :func:`family_grid`; never drawn
         from the training split.
     """
-    if family not in FAMILIES:
-        raise ValueError(f"unknown profile family {family!r}; choose one of {FAMILIES}")
-    if not (isinstance(n_frames, (int, np.integer)) and n_frames >= 1 and frame_rate_hz > 0):
-        raise ValueError("need n_frames >= 1 (integer) and frame_rate_hz > 0")
-    rng = np.random.default_rng([int(seed), FAMILIES.index(family)])
-    h_m, prof = load_measured()
-    test = prof[measured_split("test", prof.shape[0])]
-    evo = EvolvingProfile(h_m, test, seconds_per_profile)
-    span = n_frames / frame_rate_hz
-    t0 = rng.uniform(0.0, max(evo.duration_s - span, 0.0))
-    src = evo.at_many(t0 + np.arange(n_frames) / frame_rate_hz)          # (F, K_m)
-    c0 = float(np.mean(centroid_altitude(h_m, src)))
-    h = family_grid()
-    scale, target = 1.0, c0
-    if family == "high":
-        target = rng.uniform(100e3, 105e3)
-    elif family == "broad":
-        scale = rng.uniform(2.0, 2.5)
-    elif family == "narrow":
-        scale = rng.uniform(0.15, 0.25)
-    # rho_new(h) = rho_src(c0 + (h - target) / scale) / scale: the same map for every frame
-    hs = c0 + (h - target) / scale
-    out = _interp_rows(h_m, src, hs) / scale
-    if family == "sporadic":
-        frac = rng.uniform(0.3, 0.5)
-        layer = gaussian_profile(h, rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
-        mass = (out * _weights(h)).sum(axis=1, keepdims=True)
-        lmass = (layer * _weights(h)).sum()
-        out = out + layer[None, :] * (mass * frac / (1 - frac) / lmass)
-    return h, out
+    evo, t0 = unseen_sequence(family, n_frames, frame_rate_hz, seed, seconds_per_profile)
+    return evo.altitude_m, evo.at_many(t0 + np.arange(n_frames) / frame_rate_hz)
 
 
 def _interp_rows(x: np.ndarray, rows: np.ndarray, xq: np.ndarray) -> np.ndarray:
