@@ -133,7 +133,12 @@ def test_calibrated_estimators_are_unbiased_on_a_held_out_family(detector, launc
              "cmf_model": table.build("cmf", s, {"reference": "model"}),
              "cmf": table.build("cmf", s, {"pupil_period": 70})}
     errs = _run(s, cents, sm, 280, np.random.default_rng(3), warm=140)
-    bias = {k: np.sqrt(np.mean(np.nanmean(e, axis=0) ** 2)) for k, e in errs.items()}
+    # a CoG's gain drops where the field cuts the spot (its mean error then follows the mean
+    # tilt, which no bias removes): score the subapertures that keep 95 % of their light
+    n = geometry.layout(s).n_valid
+    keep = sm.images(np.zeros((n, 2)))[1] < 0.05
+    assert keep.sum() > 100
+    bias = {k: np.sqrt(np.mean(np.nanmean(e[:, keep], axis=0) ** 2)) for k, e in errs.items()}
     mean2d = {k: np.nanmean(np.hypot(e[..., 0], e[..., 1])) for k, e in errs.items()}
     assert bias["cog"] > 0.1 and bias["cmf_model"] > 0.1
     assert bias["cog_pupil"] < 0.2 * bias["cog"]
