@@ -401,7 +401,11 @@ class CMF(Centroider):
             # contraction convert them on the fly, no float copy of the stack (the filter
             # coefficients, 8.5 MB in float32, are the bulk of the memory traffic)
             flat = self.as_stack(raw).reshape(self.n, -1)
-            self._observe_pupil(flat)
+            if self.pupil is not None and raw.shape == self.sensor.frame_shape:
+                if self.pupil.observe_frame(raw):            # integer accumulation, no copy
+                    self._install_pupil()
+            else:
+                self._observe_pupil(flat)
             self.ref.observe(None, None)
             r, fok, _, r3, r3_32, q, rsum = self._model_filter()
             m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)

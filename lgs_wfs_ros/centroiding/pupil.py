@@ -92,6 +92,7 @@ class PupilCalibration:
         """Forget everything seen: back to the prior profile."""
         self._acc = np.zeros((self.n, self.sensor.pixels ** 2))
         self._acc_rows = None                    # (G*G, p*p) float32, see observe_rows
+        self._acc_frame = None                   # a detector frame's shape, see observe_frame
         self._count = np.zeros(self.n)
         self._frames = 0
         self.state = None
@@ -173,9 +174,29 @@ class PupilCalibration:
             return True
         return False
 
+    def observe_frame(self, frame: np.ndarray) -> bool:
+        """As :meth:`observe` for a whole detector frame ``(G*p, G*p)`` of integer counts:
+        added as it is into an integer accumulator (no cut, no float copy), cut into
+        subapertures only at the refit."""
+        if self._frames % self.stride == 0:
+            if self._acc_frame is None or self._acc_frame.shape != frame.shape:
+                kind = np.uint32 if frame.dtype.kind == "u" and frame.dtype.itemsize <= 2 else np.float64
+                self._acc_frame = np.zeros(frame.shape, dtype=kind)
+            np.add(self._acc_frame, frame, out=self._acc_frame, casting="unsafe")
+            self._count += 1
+        self._frames += 1
+        if self._frames % self.period == 0:
+            self.refit()
+            return True
+        return False
+
     # -- fit --------------------------------------------------------------------------
     def refit(self) -> None:
         """Blend the accumulated mean images into the average and refit the profile."""
+        if self._acc_frame is not None:
+            stack = geometry.frame_to_stack(self._acc_frame, self.layout)
+            self._acc += stack.reshape(self.n, -1)
+            self._acc_frame[:] = 0
         if self._acc_rows is not None:
             self._acc += self._acc_rows[self._rows_index]
             self._acc_rows[:] = 0.0
