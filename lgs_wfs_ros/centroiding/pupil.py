@@ -45,6 +45,8 @@ from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_d
 from ..optics.sodium import gaussian_profile, harmonic_altitude
 from .base import number
 
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
 
 class PupilCalibration:
     """Running sodium-profile estimate of one sensor and the references it implies.
@@ -84,6 +86,11 @@ class PupilCalibration:
         e_pix = np.tile([1.0, 0.0], (self.n, 1)) if polar else np.asarray(self.layout.e, float)
         self.projection = Projection(sensor, e_pix, 1.0)
         self._basis = None
+        self.blur_px = 0.0
+        y, x = np.indices((sensor.pixels, sensor.pixels), dtype=float)
+        c = (sensor.pixels - 1) / 2
+        self._u_perp = (-(x.ravel() - c)[None, :] * e_pix[:, 1:]
+                        + (y.ravel() - c)[None, :] * e_pix[:, :1])              # (n, pp) across e
         self.prior = self._prior_light(number("prior_fwhm_m", prior_fwhm_m, minimum=0, strict=True))
         self.reset()
 
@@ -119,8 +126,11 @@ class PupilCalibration:
     def basis(self) -> np.ndarray:
         """``(n, nb, K)`` projected thin-layer spots (built on first use, ~1-2 s)."""
         if self._basis is None:
-            b = projected_hats(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
-                               self.projection)
+            # the mean image of a spot under random tilts of rms s per axis is the spot with
+            # its Gaussian core widened by s: fit the means against spots so blurred
+            core = math.hypot(self.sensor.core_fwhm_px, FWHM_PER_SIGMA * self.blur_px)
+            b = projected_hats(self.sensor.replace(core_fwhm_px=core), self.layout.r_m,
+                               self.layout.e, self.nodes_m, self.projection)
             self._basis = b
             self._colsum = b.sum(axis=1)                                       # (n, K)
             self._gram = np.einsum("snk,snl->kl", b, b)
@@ -208,6 +218,7 @@ class PupilCalibration:
         tot = proj.sum(axis=1)
         good &= np.isfinite(tot) & (tot > 0)
         z = np.where(good[:, None], proj / np.where(good, tot, 1.0)[:, None], 0.0)
+        self._update_blur(mean, good)
         if self.state is None:
             self.state, self.flux = z, np.where(good, tot, self.sensor.photons)
         else:
@@ -226,6 +237,23 @@ class PupilCalibration:
         self.fits += 1
         self.version += 1
         self._refs = None
+
+    def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
+        """Tilt blur of the mean images from their spread across e (where the profile does
+        not reach): pupil median of ``var_across - (core^2 + 1/12)`` px^2; the basis is
+        rebuilt when it moves by more than 0.05 px."""
+        if good.sum() < 3:
+            return
+        m = np.maximum(mean[good], 0.0)
+        tot = m.sum(axis=1)
+        u = self._u_perp[good]
+        mu = (m * u).sum(axis=1) / tot
+        var = (m * u * u).sum(axis=1) / tot - mu ** 2
+        core = (self.sensor.core_fwhm_px / FWHM_PER_SIGMA) ** 2 + 1.0 / 12.0
+        blur = math.sqrt(max(float(np.median(var)) - core, 0.0))
+        if abs(blur - self.blur_px) > 0.05:
+            self.blur_px = blur
+            self._basis = None
 
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
               iterations: int = 3) -> np.ndarray:
@@ -305,6 +333,7 @@ class PupilCalibration:
     def describe(self) -> dict:
         h, d = self.profile
         return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
+                "tilt_blur_px": round(self.blur_px, 3),
                 "time_constant_s": self.time_constant_s, "stride": self.stride,
                 "nodes": int(self.nodes_m.size),
                 "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
