@@ -240,8 +240,9 @@ class PupilCalibration:
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
-        not reach): pupil median of ``var_across - (core^2 + 1/12)`` px^2; the basis is
-        rebuilt when it moves by more than 0.05 px."""
+        not reach): the pupil median of the across-e variance, inverted through the
+        pixel-integrated core widened by a blur; the basis is rebuilt when it moves by more
+        than 0.05 px."""
         if good.sum() < 3:
             return
         m = np.maximum(mean[good], 0.0)
@@ -249,11 +250,25 @@ class PupilCalibration:
         u = self._u_perp[good]
         mu = (m * u).sum(axis=1) / tot
         var = (m * u * u).sum(axis=1) / tot - mu ** 2
-        core = (self.sensor.core_fwhm_px / FWHM_PER_SIGMA) ** 2 + 1.0 / 12.0
-        blur = math.sqrt(max(float(np.median(var)) - core, 0.0))
+        blur = float(np.interp(np.median(var), *self._spread_table()))
         if abs(blur - self.blur_px) > 0.05:
             self.blur_px = blur
             self._basis = None
+
+    def _spread_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(variance (S,), blur (S,))``: across-e variance (px^2, about the block centre,
+        pixel centres) of the pixel-integrated core widened by a tilt blur of rms ``blur``
+        px: an under-sampled core is not ``sigma^2 + 1/12``."""
+        if not hasattr(self, "_spread"):
+            from scipy.special import ndtr
+            p = self.sensor.pixels
+            j = np.arange(p) - (p - 1) / 2
+            blur = np.linspace(0.0, 3.0, 301)
+            sig = np.hypot(self.sensor.core_fwhm_px / FWHM_PER_SIGMA, blur)[:, None]
+            g = ndtr((j + 0.5) / sig) - ndtr((j - 0.5) / sig)                # (S, p)
+            var = (g * j ** 2).sum(axis=1) / g.sum(axis=1)
+            self._spread = (var, blur)
+        return self._spread
 
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
               iterations: int = 3) -> np.ndarray:
