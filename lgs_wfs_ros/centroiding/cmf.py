@@ -196,6 +196,8 @@ class CMF(Centroider):
         if o["reference"] == "pupil":
             self.pupil = pupil_cal.from_options(sensor, o, self.background)
             self._install_pupil()
+        if self.linearize and self._image_at is not None:
+            self.calibrate_response()        # at construction, not on a live node's first frame
 
     # -- pupil reference ----------------------------------------------------------------
     def _install_pupil(self) -> None:
