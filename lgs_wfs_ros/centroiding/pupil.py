@@ -161,39 +161,36 @@ class PupilCalibration:
             else:
                 self._acc[ok] += f[ok]
                 self._count[ok] += 1
-        self._frames += 1
-        if self._frames % self.period == 0:
-            self.refit()
-            return True
-        return False
+        return self._tick()
 
     def observe_rows(self, rows: np.ndarray, valid_rows: np.ndarray) -> bool:
         """As :meth:`observe` for every block of a frame, ``rows (G*G, p*p)`` float32 (a
         centroider's cast-and-cut buffer), valid ones at ``valid_rows (n,)``: one float32
         addition, no gather (the cheapest per-frame path). A subaperture with a bad pixel
         in a period is left out of that period's mean."""
-        if self._frames % self.stride == 0:
-            if self._acc_rows is None or self._acc_rows.shape != rows.shape:
-                self._acc_rows = np.zeros(rows.shape, dtype=np.float32)
-                self._rows_index = valid_rows
-            np.add(self._acc_rows, rows, out=self._acc_rows)
-            self._count += 1
-        self._frames += 1
-        if self._frames % self.period == 0:
-            self.refit()
-            return True
-        return False
+        self._rows_index = valid_rows
+        return self._add_whole("_acc_rows", rows, np.float32)
 
     def observe_frame(self, frame: np.ndarray) -> bool:
         """As :meth:`observe` for a whole detector frame ``(G*p, G*p)`` of integer counts:
         added as it is into an integer accumulator (no cut, no float copy), cut into
         subapertures only at the refit."""
+        kind = np.uint32 if frame.dtype.kind == "u" and frame.dtype.itemsize <= 2 else np.float64
+        return self._add_whole("_acc_frame", frame, kind)
+
+    def _add_whole(self, name: str, data: np.ndarray, dtype) -> bool:
+        """Add a whole array into the accumulator ``name`` (made on first use)."""
         if self._frames % self.stride == 0:
-            if self._acc_frame is None or self._acc_frame.shape != frame.shape:
-                kind = np.uint32 if frame.dtype.kind == "u" and frame.dtype.itemsize <= 2 else np.float64
-                self._acc_frame = np.zeros(frame.shape, dtype=kind)
-            np.add(self._acc_frame, frame, out=self._acc_frame, casting="unsafe")
+            buf = getattr(self, name)
+            if buf is None or buf.shape != data.shape:
+                buf = np.zeros(data.shape, dtype=dtype)
+                setattr(self, name, buf)
+            np.add(buf, data, out=buf, casting="unsafe")
             self._count += 1
+        return self._tick()
+
+    def _tick(self) -> bool:
+        """Count a frame; refit at the end of a period (returns True then)."""
         self._frames += 1
         if self._frames % self.period == 0:
             self.refit()
