@@ -30,9 +30,21 @@ def _report(args):
 
 
 def _replay(args):
+    import json
+    from pathlib import Path
     from .analysis.replay import replay_bag
+    opts = None
+    if args.options:
+        text = args.options
+        if text.startswith("@"):
+            text = Path(text[1:]).read_text()
+        try:
+            opts = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--options is not JSON ({exc}); e.g. '{{\"cmf\": {{\"reference\": \"history\"}}}}'")
+    models = [m for m in (args.models or "").split(",") if m]
     replay_bag(args.bag, algorithms=args.algorithms.split(","), out=args.out,
-               overwrite=args.overwrite, model=args.model)
+               overwrite=args.overwrite, model=args.model, models=models, options=opts)
     return 0
 
 
@@ -103,13 +115,26 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the JSON summary alone")
     p.set_defaults(func=_report)
 
-    p = _add(sub, "replay", "run centroiders over a bag's frames into a new bag (no ROS)",
-             "  lgs-wfs replay bags/sample.mcap --algorithms cog,cmf --out replayed.mcap\n")
-    p.add_argument("bag", help="an MCAP bag with frames and a sensor description")
-    p.add_argument("--algorithms", default="cog,cmf,ann", help="comma-separated centroiders")
-    p.add_argument("--out", default=None, help="bag to write (default: beside the input)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    p.add_argument("--model", default=None, help="ONNX model for ann")
+    p = _add(sub, "replay", "run centroiders over a bag's frames into a new bag (no ROS); each "
+             "uses the options recorded in the bag for its algorithm unless --options",
+             "  lgs-wfs replay bags/sample.mcap --algorithms cog,cmf --out replayed.mcap\n"
+             "  lgs-wfs replay bags/sample.mcap --algorithms ann --models ann_pupil,ann_1k\n"
+             "  lgs-wfs replay bags/sample.mcap --algorithms cmf --options '{\"cmf\": {\"reference\": \"model\"}}'\n")
+    p.add_argument("bag", help="input MCAP bag with frame and sensor topics, e.g. bags/full.mcap")
+    p.add_argument("--algorithms", default="cog,cmf,ann",
+                   help="comma-separated centroiders, e.g. cog,cmf,corr,ann (default cog,cmf,ann)")
+    p.add_argument("--out", default=None,
+                   help="output bag, e.g. bags/full_replay.mcap (default <bag stem>_replay.mcap)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    p.add_argument("--model", default=None,
+                   help="ONNX model for ann, a name in models/ or a path, e.g. ann_pupil")
+    p.add_argument("--models", default=None,
+                   help="several ONNX models, ann runs once per model into /ann_<name>, "
+                        "e.g. ann_pupil,ann_1k")
+    p.add_argument("--options", default=None,
+                   help="JSON {algorithm: {option: value}} replacing the recorded options of those "
+                        "algorithms (others keep the bag's, or the defaults), or @file.json, e.g. "
+                        "'{\"cmf\": {\"reference\": \"history\"}, \"cog\": {\"bias\": \"pupil\"}}'")
     p.set_defaults(func=_replay)
 
     p = _add(sub, "reproduce", "the paper's figures and tables with our code",

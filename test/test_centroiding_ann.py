@@ -70,7 +70,8 @@ def test_linear_model_reproduces_cog(tmp_path):
     np.testing.assert_allclose(c.centroid(st), make_centroider("cog", SENSOR).centroid(st), atol=1e-5)
     d = c.describe()
     json.dumps(d)
-    assert d["model_path"] == str(path) and d["model_metadata"]["training"] == {"note": "test"}
+    assert d["model"] == "cog" and d["model_metadata"]["training"] == {"note": "test"}
+    assert str(tmp_path) not in json.dumps(d) and len(d["model_sha256"]) == 64
     assert c.session.get_session_options().intra_op_num_threads == 1
 
 

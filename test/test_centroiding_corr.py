@@ -45,7 +45,7 @@ def test_peak_fit_is_exact_for_quadratics_and_gaussians():
 
 def test_reference_from_the_cmf_and_history_mode():
     image_at = image_at_factory(1.0, 2.0)
-    cmf = make_centroider("cmf", SENSOR)
+    cmf = make_centroider("cmf", SENSOR, reference="history")
     frames = [image_at(np.full((N, 2), 0.1 * k)) for k in range(5)]
     for f in frames:
         cmf.centroid(f)
@@ -55,7 +55,7 @@ def test_reference_from_the_cmf_and_history_mode():
     out = corr.centroid(image_at(np.full((N, 2), 0.5)))
     np.testing.assert_allclose(out, 0.5 - mean_shift, atol=0.02)
     # history mode behaves like the CMF's: a stationary spot reads ~0
-    h = make_centroider("corr", SENSOR)
+    h = make_centroider("corr", SENSOR, reference="history")
     for _ in range(3):
         out = h.centroid(frames[-1])
     np.testing.assert_allclose(out, 0, atol=1e-9)

@@ -243,3 +243,61 @@ def test_evolving_measured_at_frame_rate():
     t = np.arange(0, 2.0, 1 / 700)
     d = ev.at_many(t)
     assert d.shape == (1400, 1584) and np.all(d >= 0)
+
+
+# -- splits and unseen families -------------------------------------------------------------
+def test_measured_split_is_contiguous_disjoint_and_used_by_training():
+    from lgs_wfs_ros.learning import dataset
+    train, test = na.measured_split("train"), na.measured_split("test")
+    assert np.array_equal(np.concatenate([train, test]), np.arange(88))
+    assert np.all(np.diff(train) == 1) and np.all(np.diff(test) == 1)
+    tr, va = dataset.measured_split(88)
+    assert np.array_equal(tr, train) and np.array_equal(va, test)
+    # the training prior is fitted on the train block only
+    full, m = na.load_model(), na.training_model()
+    assert m.fits.shape[0] == train.size
+    np.testing.assert_array_equal(m.measured_centroid_m, full.measured_centroid_m[train])
+    assert dataset._model() is m
+    with pytest.raises(ValueError, match="unknown split"):
+        na.measured_split("validation")
+
+
+def test_subaperture_batch_default_prior_is_the_training_model(monkeypatch):
+    from lgs_wfs_ros.optics import simulator
+    from lgs_wfs_ros.sensor import Sensor
+    seen = []
+    real = na.training_model
+
+    def spy():
+        seen.append(1)
+        return real()
+    monkeypatch.setattr(na, "training_model", spy)
+    simulator.subaperture_batch(Sensor.paper_single("polar"), np.random.default_rng(0), 3)
+    assert seen
+
+
+def test_unseen_families_sit_where_training_does_not(measured):
+    h_m, prof = measured
+    train_c = na.centroid_altitude(h_m, prof[na.measured_split("train")])
+    train_w = na.fwhm(h_m, prof[na.measured_split("train")], smooth_m=300)
+    out = {}
+    for fam in na.FAMILIES:
+        h, d = na.unseen_profiles(fam, 700, 700.0, seed=3)
+        assert d.shape == (700, h.size) and np.all(d >= 0)
+        out[fam] = (na.centroid_altitude(h, d), na.fwhm(h, d, smooth_m=300))
+        assert np.std(out[fam][0]) > 0 or fam == "sporadic"     # evolving, not frozen
+    assert np.all((out["high"][0] > 99.5e3) & (out["high"][0] < 105.5e3))
+    assert out["broad"][1].min() > 1.25 * train_w.max()
+    assert out["narrow"][1].max() < 0.5 * train_w.min()
+    assert out["sporadic"][1].max() < 1.5e3                  # the thin layer sets the maximum
+    c = out["measured"][0]
+    assert abs(c.mean() - train_c.mean()) < 1e3             # same night, other block
+    # the test block is what it draws from: it equals the evolving test block at t0 (clamp)
+    h, d = na.unseen_profiles("measured", 1, 700.0, seed=3)
+    evo = na.EvolvingProfile(h_m, prof[na.measured_split("test")])
+    ts = np.linspace(0, evo.duration_s, 2001)
+    best = min(np.abs(na._interp_rows(h_m, evo.at_many(ts[i:i + 1]), h) - d).max()
+               for i in range(0, 2001, 1))
+    assert best < 0.05 * d.max()
+    with pytest.raises(ValueError, match="unknown profile family"):
+        na.unseen_profiles("wide", 3, 700.0)

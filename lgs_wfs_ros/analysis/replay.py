@@ -6,6 +6,12 @@ chosen centroider's slopes under its own namespace with the frame's stamp, plus 
 ``centroider`` description: exactly what the live centroider node would have recorded.
 A namespace already in the bag gets the suffix ``_replay``. Needs the bag's ``sensor``
 description to cut frames into subapertures.
+
+Options: every centroider is built by :func:`lgs_wfs_ros.centroiding.options.build` (the
+defaults of the node, the demo and the Python API). For an algorithm whose ``centroider``
+description is recorded in the bag, replay uses the options recorded there (the last
+description of that algorithm: what the node ran live), so the replayed slopes are the
+live ones; ``options`` overrides that per algorithm. ``models`` runs ``ann`` once per model.
 """
 
 from __future__ import annotations
@@ -41,8 +47,38 @@ def _namespaces(algorithms, existing):
     return out
 
 
+def recorded_options(reader, names) -> dict:
+    """``{algorithm: options}`` from the bag's centroider descriptions (the last one of each
+    algorithm, in file order), restricted to the options the table knows."""
+    from ..centroiding import options as table
+    out = {}
+    for topic in names["centroider"].values():
+        for _, d in read_json_topic(reader, topic):
+            alg = d.get("algorithm")
+            if alg in table.OPTIONS and isinstance(d.get("options"), dict):
+                known = {o.name for o in table.OPTIONS[alg]}
+                out[alg] = {k: v for k, v in d["options"].items() if k in known}
+    return out
+
+
+def _plan(algorithms, models, given, recorded):
+    """``[(label, algorithm, options, source)]``: one entry per algorithm (per model for ann)."""
+    plan = []
+    for alg in algorithms:
+        opts, source = (dict(given[alg]), "given") if alg in given else \
+            (dict(recorded[alg]), "bag") if alg in recorded else ({}, "defaults")
+        if alg == "ann" and models:
+            for m in models:
+                label = "ann" if len(models) == 1 else "ann_" + "".join(
+                    ch if ch.isalnum() else "_" for ch in Path(str(m)).with_suffix("").as_posix())
+                plan.append((label, alg, {**opts, "model": str(m)}, "given"))
+        else:
+            plan.append((alg, alg, opts, source))
+    return plan
+
+
 def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = False, model=None,
-               quiet: bool = False) -> dict:
+               quiet: bool = False, models=None, options=None) -> dict:
     """Run centroiders over a bag's frames and write their slopes into a new bag.
 
     Args:
@@ -50,16 +86,27 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
         algorithms: registry names (``lgs_wfs_ros.centroiding.ALGORITHMS``).
         out: output path (default ``<stem>_replay.mcap`` beside the input).
         overwrite: replace an existing output (else BagError).
-        model: ONNX model (path or name) for ``ann``.
+        model: ONNX model (path or name) for ``ann`` (same as ``models=[model]``).
+        models: several ONNX models: ``ann`` runs once per model, namespaces ``ann_<name>``.
+        options: ``{algorithm: {option: value}}`` replacing the options recorded in the bag
+            for those algorithms (others keep the recorded ones, or the defaults).
 
-    Returns ``{"out", "frames", "skipped", "namespaces": {algorithm: namespace}}``; frames that
-    cannot be centroided (wrong size, undecodable) get no slopes and are counted in ``skipped``.
+    Returns ``{"out", "frames", "skipped", "namespaces": {label: namespace},
+    "options": {label: {"algorithm", "options", "source"}}}`` (source: "bag", "given" or
+    "defaults"); frames that cannot be centroided (wrong size, undecodable) get no slopes
+    and are counted in ``skipped``.
     """
-    from ..centroiding import make_centroider
+    from ..centroiding import options as table
 
     algorithms = [a.strip() for a in algorithms if a and a.strip()]
     if not algorithms:
         raise ValueError("replay needs at least one algorithm")
+    models = list(models or []) + ([model] if model is not None else [])
+    given = dict(options or {})
+    for alg, opts in given.items():
+        if alg not in table.OPTIONS or not isinstance(opts, dict):
+            raise ValueError(f"replay options must be {{algorithm: {{option: value}}}} with algorithms "
+                             f"among {', '.join(table.OPTIONS)}; got {alg!r}: {opts!r}")
     src = Path(path)
     out = Path(out) if out is not None else src.with_name(src.stem + "_replay.mcap")
     if out.resolve() == src.resolve():
@@ -82,13 +129,13 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
         if not msgs:
             raise BagError(f"{src}: the sensor topic has no message")
         sensor = sensor_from_info(msgs[-1][1], f"{src}: {names['sensor']}")
-        cents = {}
-        for alg in algorithms:
-            opts = {"model": model} if (alg == "ann" and model is not None) else {}
-            cents[alg] = make_centroider(alg, sensor, **opts)
+        plan = _plan(algorithms, models, given, recorded_options(reader, names))
+        cents = {label: table.build(alg, sensor, opts) for label, alg, opts, _ in plan}
+        used = {label: {"algorithm": alg, "options": opts, "source": source}
+                for label, alg, opts, source in plan}
         lay = geometry.layout(sensor)
         existing = set(names["slopes"]) | set(names["centroider"])
-        spaces = _namespaces(algorithms, existing)
+        spaces = _namespaces(list(cents), existing)
         counts = {"frames": 0, "skipped": 0}
         w = BagWriter(out, overwrite=overwrite)
         try:
@@ -101,7 +148,8 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
             for topic, _, log, pub, cdr in reader.messages():
                 if not described:
                     for alg, ns in spaces.items():
-                        d = dict(cents[alg].describe(), replayed_from=str(src))
+                        d = dict(cents[alg].describe(), replayed_from=src.name,
+                                 options_source=used[alg]["source"])
                         w.write(f"/{ns}/centroider", encode_string(_json(d)), log)
                     described = True
                 w.write(topic, cdr, log, pub)
@@ -121,10 +169,10 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
             _discard(w, out)
             raise
         w.close()
-    result = {"out": str(out), **counts, "namespaces": spaces}
+    result = {"out": str(out), **counts, "namespaces": spaces, "options": used}
     if not quiet:
-        print(f"replayed {counts['frames']} frames of {src} with "
-              f"{', '.join(f'{a} -> /{n}' for a, n in spaces.items())} into {out}"
+        what = ", ".join(f"{a} -> /{n} ({used[a]['source']} options)" for a, n in spaces.items())
+        print(f"replayed {counts['frames']} frames of {src} with {what} into {out}"
               + (f" ({counts['skipped']} frames skipped: wrong size or undecodable)" if counts["skipped"] else ""))
     return result
 
@@ -143,4 +191,4 @@ def _json(d):
     return json.dumps(d, sort_keys=True, default=str)
 
 
-__all__ = ["replay_bag"]
+__all__ = ["replay_bag", "recorded_options"]

@@ -57,7 +57,7 @@ TABLE_CASES = {1: ("turbulent", 316), 2: ("turbulent", 1000), 3: ("diagonal", 31
 #: label, registry name, options, detectors it is run on
 ALGORITHMS = [
     ("CoG", "cog", {}, ("polar", "cartesian")),
-    ("CMF", "cmf", {}, ("polar", "cartesian")),
+    ("CMF", "cmf", {"reference": "history"}, ("polar", "cartesian")),   # the paper's CMF
     ("ANN 1k", "ann", {"model": "ann_1k"}, ("polar",)),
     ("ANN noiseless", "ann", {"model": "ann_noiseless"}, ("polar",)),
     ("ANN diag", "ann", {"model": "ann_diag"}, ("cartesian",)),

@@ -390,11 +390,27 @@ class ANN(Centroider):
         return self.finish(self.to_pixel_axes(out), ok)
 
     def describe(self):
+        """As :meth:`Centroider.describe`, the model given by name and sha256 (never an
+        absolute path: a bag must replay on another machine; ``options.model`` is the
+        name too)."""
         d = super().describe()
-        d["model_path"] = str(self.path)
+        d["model"] = self.model_name
+        d["options"]["model"] = self.model_name
         d["model_sha256"] = self._sha256
         d["model_metadata"] = {k: v for k, v in self.meta.items()}
         return d
+
+    @property
+    def model_name(self) -> str:
+        """The model's name: its path inside a models directory without ``.onnx``
+        (``ann_pupil``, ``paper_prior/ann_1k_paper``), else its file stem."""
+        path = Path(self.path).resolve()
+        for d in model_dirs():
+            try:
+                return path.relative_to(Path(d).resolve()).with_suffix("").as_posix()
+            except (ValueError, OSError):
+                continue
+        return path.stem
 
 
 def _check_width(arg, width: int, label: str, n: int) -> None:

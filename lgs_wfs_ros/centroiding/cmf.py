@@ -39,6 +39,7 @@ import numpy as np
 from . import kernels
 from .base import Centroider, check_options, choice, number
 from .cog import elongation_fwhm_px, model_spots
+from . import pupil as pupil_cal
 from .linearize import ResponseMap, transform_covariance
 from .reference import ReferenceSource, fourier_derivatives, integer_shift
 
@@ -117,22 +118,29 @@ class CMF(Centroider):
     """Constrained matched filter (``constrained=False``: plain matched filter).
 
     Options:
-        reference: "history" (paper; default) | "static" (``set_reference``) | "model".
+        reference: "pupil" (default: the spot of the profile estimated from the whole
+            pupil, :mod:`.pupil`, with exact derivatives, refreshed every
+            ``pupil_period`` frames) | "history" (the paper's) | "static"
+            (``set_reference``) | "model".
+        pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration's refit
+            period (frames), memory (s) and accumulation stride (frames).
         history: frames in the history mean (5).
         include_current: the measured frame is part of the history (True, paper).
         update_period: reference/derivatives refreshed every N frames (1).
         dither: derivative dither in px (0.02, paper).
         constrained: True (CMF) | False (plain MF with flux column).
         constraint_px: whole-pixel shift of the linearity constraints (1).
-        weighting: "image" (paper) | "model".
+        weighting: "auto" (default: "image" with a history reference, the paper's; else
+            "model", whose filter is fixed between reference updates) | "image" | "model".
         read_noise_e, background: counts; default the sensor's.
         var_floor: lower bound on the pixel variance, counts^2 (1.0).
         sodium_fwhm_m: layer thickness for ``reference="model"`` (10 km).
         derivative: "fourier" (Fourier-shift dither of the reference, or the derivative
             images given to ``set_reference``) | "dither" (the paper's: dithered images
             supplied with :meth:`push_dither`, averaged over the last ``history`` pushes).
-        linearize: invert the calibrated response (False). Needs a static or model
-            reference; the model reference calibrates itself, a static one needs
+        linearize: invert the calibrated response (True). Applies to fixed references
+            (static, model, pupil) with Fourier derivatives and is off otherwise; the model
+            and pupil references calibrate themselves, a static one needs
             :meth:`calibrate_response`.
         linearize_extent: half-width of the calibrated box, px (1.1).
     """
@@ -140,16 +148,17 @@ class CMF(Centroider):
     name = "cmf"
     _allowed = ("reference", "history", "include_current", "update_period", "dither",
                 "constrained", "constraint_px", "weighting", "read_noise_e", "background",
-                "var_floor", "sodium_fwhm_m", "derivative", "linearize", "linearize_extent")
+                "var_floor", "sodium_fwhm_m", "derivative", "linearize", "linearize_extent",
+                *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
         kernels.warm_up()
-        o = {"reference": "history", "history": 5, "include_current": True, "update_period": 1,
-             "dither": 0.02, "constrained": True, "constraint_px": 1, "weighting": "image",
+        o = {"reference": "pupil", "history": 5, "include_current": True, "update_period": 1,
+             "dither": 0.02, "constrained": True, "constraint_px": 1, "weighting": "auto",
              "read_noise_e": float(sensor.read_noise_e), "background": float(sensor.background_e),
              "var_floor": 1.0, "sodium_fwhm_m": 10e3, "derivative": "fourier",
-             "linearize": False, "linearize_extent": 1.1}
+             "linearize": True, "linearize_extent": 1.1, **pupil_cal.OPTION_DEFAULTS}
         o.update(options)
         super().__init__(sensor, **o)
         self.dither = number("dither", o["dither"], minimum=0, strict=True)
@@ -159,19 +168,20 @@ class CMF(Centroider):
         self.constraint_px = number("constraint_px", o["constraint_px"], minimum=1, integer=True)
         if self.constraint_px >= self.p:
             raise ValueError(f"option constraint_px must be < {self.p} pixels")
-        self.weighting = choice("weighting", o["weighting"], ("image", "model"))
+        self.weighting = choice("weighting", o["weighting"], ("auto", "image", "model"))
+        if self.weighting == "auto":            # the paper's image weighting with a history
+            self.weighting = "image" if o["reference"] == "history" else "model"
         self.read_noise = number("read_noise_e", o["read_noise_e"], minimum=0)
         self.background = number("background", o["background"], minimum=0)
         self.var_floor = number("var_floor", o["var_floor"], minimum=0, strict=True)
         self.derivative = choice("derivative", o["derivative"], ("fourier", "dither"))
         if not isinstance(o["linearize"], (bool, np.bool_)):
             raise ValueError(f"option linearize must be true or false, got {o['linearize']!r}")
-        self.linearize = bool(o["linearize"])
+        # a reference that changes every frame (history) or pushed dither derivatives
+        # would need a new calibration every frame: linearize applies to fixed references
+        self.linearize = bool(o["linearize"]) and o["reference"] != "history" \
+            and self.derivative == "fourier"
         self.linearize_extent = number("linearize_extent", o["linearize_extent"], minimum=0, strict=True)
-        if self.linearize and (o["reference"] == "history" or self.derivative == "dither"):
-            raise ValueError("option linearize needs reference='static' or 'model' with "
-                             "derivative='fourier' (a reference that changes every frame "
-                             "would need a new calibration every frame)")
         self._dithers = []
         self._image_at = None
         self._response = None
@@ -184,6 +194,25 @@ class CMF(Centroider):
                                    o["include_current"], o["update_period"], model)
         self._nea_state = None
         self._built_version = -1
+        self.pupil = None
+        if o["reference"] == "pupil":
+            self.pupil = pupil_cal.from_options(sensor, o, self.background)
+            self._install_pupil()
+        if self.linearize and self._image_at is not None:
+            self.calibrate_response()        # at construction, not on a live node's first frame
+
+    # -- pupil reference ----------------------------------------------------------------
+    def _install_pupil(self) -> None:
+        """Install the calibration's current reference (counts + background) and renderer."""
+        img, dx, dy, _ = self.pupil.counts()
+        self.ref.set(img + self.background, dx, dy)
+        self._image_at = lambda shift: self.pupil.image_at(shift) + self.background
+
+    def _observe_pupil(self, flat) -> None:
+        """Feed one frame's ``(n, p*p)`` counts (background included) to the calibration;
+        a refit installs the new reference."""
+        if self.pupil is not None and self.pupil.observe(flat):
+            self._install_pupil()
 
     def model_reference(self, sodium_fwhm_m: float) -> np.ndarray:
         """``(n, p, p)`` centred model spots, ``sensor.photons`` counts plus the background,
@@ -199,7 +228,8 @@ class CMF(Centroider):
         return img * self.sensor.photons + self.background
 
     # -- response linearisation ---------------------------------------------------------
-    def calibrate_response(self, image_at=None, points: int = 12, degree: int = 8) -> float:
+    def calibrate_response(self, image_at=None, points: int | None = None,
+                           degree: int | None = None) -> float:
         """Scan the filter's response on noise-free shifted references and fit it.
 
         Args:
@@ -207,7 +237,9 @@ class CMF(Centroider):
                 reference displaced by ``shift`` (block pixel axes, counts with the
                 background, as the frames); default the model images of
                 ``reference="model"``. Kept, and re-run after a new ``set_reference``.
-            points, degree: scan grid per axis and Chebyshev degree (:mod:`.linearize`).
+            points, degree: scan grid per axis and Chebyshev degree (:mod:`.linearize`);
+                default 12 and 8, or 8 and 6 for the pupil reference (re-run at every
+                refit: 64 renders instead of 144).
 
         Returns:
             The largest fit residual of the response over the scan, px.
@@ -218,8 +250,9 @@ class CMF(Centroider):
             raise ValueError("cmf: calibrate_response needs image_at(shift) for a static reference")
         if self._built_version != self.ref.version:
             self._rebuild_design()
+        dp, dd = (8, 6) if self.pupil is not None else (12, 8)
         self._response = ResponseMap.fit(lambda sh: self._raw(self._image_at(sh)), self.n,
-                                         self.linearize_extent, points, degree)
+                                         self.linearize_extent, points or dp, degree or dd)
         self._response_version = self.ref.version
         return self._response.fit_error
 
@@ -237,9 +270,9 @@ class CMF(Centroider):
         if not self.linearize:
             return out
         if self._response is None or self._response_version != self.ref.version:
-            if self._image_at is None:
-                raise ValueError("cmf: linearize=True with a static reference needs "
-                                 "calibrate_response(image_at) after set_reference")
+            if self._image_at is None:      # a static reference never calibrated: raw
+                self._jac = None
+                return out
             self.calibrate_response()
         s, self._jac = self._response.invert(out)
         return s
@@ -290,6 +323,9 @@ class CMF(Centroider):
 
     def reset(self) -> None:
         self.ref.reset()
+        if self.pupil is not None:
+            self.pupil.reset()
+            self._install_pupil()
         self._dithers = []
         self._nea_state = None
         self._built_version = -1
@@ -351,6 +387,7 @@ class CMF(Centroider):
             total = flat.sum(axis=1).astype(np.float64)
             self.ref.observe(stack, np.isfinite(total) & (total > 0))
         else:
+            self._observe_pupil(flat)
             self.ref.observe(None, None)
         filt = self._model_filter()
         r3, r3_32 = filt[3], filt[4]
@@ -367,6 +404,14 @@ class CMF(Centroider):
             # integer counts (a mono16 frame): gather the valid blocks and let the
             # contraction convert them on the fly, no float copy of the stack (the filter
             # coefficients, 8.5 MB in float32, are the bulk of the memory traffic)
+            flat = None
+            if self.pupil is not None:
+                if raw.shape == self.sensor.frame_shape:
+                    if self.pupil.observe_frame(raw):        # integer accumulation, no copy
+                        self._install_pupil()
+                else:
+                    flat = self.as_stack(raw).reshape(self.n, -1)
+                    self._observe_pupil(flat)
             self.ref.observe(None, None)
             r, fok, _, r3, r3_32, q, rsum = self._model_filter()
             stack = kernels.stack_view(raw, self.n, self.p)
@@ -375,7 +420,8 @@ class CMF(Centroider):
             elif stack is not None:                            # the same sums for a stack
                 m = kernels.block_contract(stack, kernels.stack_origins(self.n, self.p), r3_32)
             else:
-                flat = self.as_stack(raw).reshape(self.n, -1)
+                if flat is None:
+                    flat = self.as_stack(raw).reshape(self.n, -1)
                 m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
         else:
             m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
@@ -387,8 +433,10 @@ class CMF(Centroider):
         return self.finish(self._linearized(out), ok)
 
     def _centroid_pixels(self, stack, total, ok):
-        self.ref.observe(stack, ok)
         flat = stack.reshape(self.n, -1)
+        if self.pupil is not None:
+            self._observe_pupil(flat)
+        self.ref.observe(stack, ok)
         if self.background:
             flat = flat - flat.dtype.type(self.background)
         r, fok, var = self._filter(flat)
@@ -426,6 +474,8 @@ class CMF(Centroider):
     def describe(self):
         d = super().describe()
         d["reference_frames_seen"] = self.ref.frames
+        if self.pupil is not None:
+            d["pupil_calibration"] = self.pupil.describe()
         if self.linearize:
             d["linearize"] = (f"response calibrated over +-{self.linearize_extent:g} px, "
                               "inverted per frame")

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from . import kernels
+from . import pupil as pupil_cal
 from .base import Centroider, check_options, choice, number, pixel_coords
 
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -27,16 +28,30 @@ class CoG(Centroider):
         background: counts per pixel subtracted before centroiding (default
             ``sensor.background_e``). Because the pixel offsets sum to zero, this only
             changes the denominator.
+        bias: "none" (default: the plain CoG, the paper's baseline) | "pupil": subtract the
+            CoG of each subaperture's reference spot rendered from the sodium profile
+            estimated from the whole pupil (:mod:`.pupil`), i.e. the bias the profile
+            implies, refreshed every ``pupil_period`` frames.
+        pupil_period, pupil_time_constant_s, pupil_stride: the calibration's refit period
+            (frames), memory (s) and accumulation stride (frames), for ``bias="pupil"``.
     """
 
     name = "cog"
-    _allowed = ("background",)
+    _allowed = ("background", "bias", *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
         options.setdefault("background", float(sensor.background_e))
+        if "bias" in self._allowed:                  # CoG itself, not TCoG/WCoG
+            options.setdefault("bias", "none")
+            for k, v in pupil_cal.OPTION_DEFAULTS.items():
+                options.setdefault(k, v)
         super().__init__(sensor, **options)
         self.background = number("background", options["background"], minimum=0)
+        self.pupil = None
+        if choice("bias", options.get("bias", "none"), ("none", "pupil")) == "pupil":
+            self.pupil = pupil_cal.from_options(sensor, options, self.background)
+            self._bias = self.pupil.cog_bias()
         x, y = pixel_coords(self.p, self.centre)
         self._xy = np.stack([x, y], axis=1)                   # (p*p, 2)
         self._xy32 = self._xy.astype(np.float32)
@@ -46,15 +61,16 @@ class CoG(Centroider):
 
     def centroid(self, data) -> np.ndarray:
         """As :meth:`Centroider.centroid`; one matrix product gives totals and moments."""
-        rows = None
-        if kernels.fits(data, self.sensor.frame_shape):        # compiled, one pass, in place
+        rows = flat = None
+        whole = kernels.fits(data, self.sensor.frame_shape)
+        if whole:                                               # compiled, one pass, in place
             m = kernels.cog_moments(data, kernels.origins(self), self.p, self.centre)
         else:
             rows = self.frame_rows(data)
         if rows is not None:                                    # a frame: all blocks, then keep valid
             w = self._w3 if rows.dtype == np.float64 else self._w332
             m = (rows @ w)[self.valid_rows].astype(np.float64)  # (n, 3)
-        elif not kernels.fits(data, self.sensor.frame_shape):
+        elif not whole:
             flat = self.float_stack(data).reshape(self.n, -1)
             w = self._w3 if flat.dtype == np.float64 else self._w332
             m = (flat @ w).astype(np.float64)                   # (n, 3)
@@ -62,13 +78,23 @@ class CoG(Centroider):
         ok = np.isfinite(m).all(axis=1) & (m[:, 0] > 0) & (denom > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             out = m[:, 1:] / denom[:, None]
+        if self.pupil is not None:
+            if whole:                                           # integer frame, as it is
+                seen = self.pupil.observe_frame(data)
+            elif flat is None:
+                seen = self.pupil.observe_rows(rows, self.valid_rows)
+            else:
+                seen = self.pupil.observe(flat, ok)
+            if seen:
+                self._bias = self.pupil.cog_bias()
+            out -= self._bias
         return self.finish(out, ok)
 
     def centroid_many(self, frames) -> np.ndarray:
         """As :meth:`Centroider.centroid_many`, one matrix product for all frames."""
         stacks = self.many_stacks(frames)
-        if stacks is None or not len(stacks):
-            return super().centroid_many(frames)
+        if stacks is None or not len(stacks) or self.pupil is not None:
+            return super().centroid_many(frames)          # the calibration sees frames in order
         k = stacks.shape[0]
         flat = stacks.reshape(k * self.n, -1)
         flat = flat.astype(np.float64 if flat.dtype == np.float64 else np.float32, copy=False)
@@ -79,6 +105,17 @@ class CoG(Centroider):
         with np.errstate(divide="ignore", invalid="ignore"):
             out = m[..., 1:] / denom[..., None]
         return self.finish(out, ok)
+
+    def reset(self) -> None:
+        if self.pupil is not None:
+            self.pupil.reset()
+            self._bias = self.pupil.cog_bias()
+
+    def describe(self) -> dict:
+        d = super().describe()
+        if self.pupil is not None:
+            d["pupil_calibration"] = self.pupil.describe()
+        return d
 
     def _centroid_pixels(self, stack, total, ok):
         flat = stack.reshape(self.n, -1)

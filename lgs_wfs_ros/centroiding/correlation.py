@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import pupil as pupil_cal
 from .base import Centroider, check_options, choice, number
 from .cmf import CMF
 from .reference import ReferenceSource
@@ -31,8 +32,10 @@ class Correlation(Centroider):
     """Correlation centroider.
 
     Options:
-        reference, history, include_current, update_period, sodium_fwhm_m: as :class:`CMF`
-            (default reference "history", 5 frames, the paper's CMF setting).
+        reference, history, include_current, update_period, sodium_fwhm_m, pupil_period,
+            pupil_time_constant_s, pupil_stride: as :class:`CMF` (default reference
+            "pupil": the spot of the profile estimated from the whole pupil; "history"
+            is the paper's 5-frame mean).
         peak: "gauss" (default: 3 x 3 quadratic fit to the log of the map, exact for
             Gaussian peaks) | "parabola" (the same fit to the map itself; peak-locking
             of 0.05 px for sigma = 1 px spots, 0.11 px for the 1.19 px-FWHM core) |
@@ -45,13 +48,15 @@ class Correlation(Centroider):
 
     name = "corr"
     _allowed = ("reference", "history", "include_current", "update_period", "sodium_fwhm_m",
-                "peak", "threshold", "padding", "subtract_min", "background")
+                "peak", "threshold", "padding", "subtract_min", "background",
+                *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
-        o = {"reference": "history", "history": 5, "include_current": True, "update_period": 1,
+        o = {"reference": "pupil", "history": 5, "include_current": True, "update_period": 1,
              "sodium_fwhm_m": 10e3, "peak": "gauss", "threshold": 0.0, "padding": 2,
-             "subtract_min": False, "background": float(sensor.background_e)}
+             "subtract_min": False, "background": float(sensor.background_e),
+             **pupil_cal.OPTION_DEFAULTS}
         o.update(options)
         super().__init__(sensor, **o)
         self.peak = choice("peak", o["peak"], ("parabola", "gauss", "cog"))
@@ -70,6 +75,10 @@ class Correlation(Centroider):
         self.ref = ReferenceSource(self.n, self.p, o["reference"], o["history"],
                                    o["include_current"], o["update_period"], model)
         self._ref_version = -1
+        self.pupil = None
+        if o["reference"] == "pupil":
+            self.pupil = pupil_cal.from_options(sensor, o, self.background)
+            self.ref.set(self.pupil.counts()[0] + self.background)
 
     def set_reference(self, images) -> None:
         """Install a static reference ``(n_valid, p, p)`` counts, block pixel axes."""
@@ -81,7 +90,16 @@ class Correlation(Centroider):
 
     def reset(self) -> None:
         self.ref.reset()
+        if self.pupil is not None:
+            self.pupil.reset()
+            self.ref.set(self.pupil.counts()[0] + self.background)
         self._ref_version = -1
+
+    def describe(self) -> dict:
+        d = super().describe()
+        if self.pupil is not None:
+            d["pupil_calibration"] = self.pupil.describe()
+        return d
 
     def _prep(self, img):
         img = img - self.background if self.background else img
@@ -106,6 +124,8 @@ class Correlation(Centroider):
         return np.fft.fftshift(c, axes=(1, 2))
 
     def _centroid_pixels(self, stack, total, ok):
+        if self.pupil is not None and self.pupil.observe(stack.reshape(self.n, -1), ok):
+            self.ref.set(self.pupil.counts()[0] + self.background)
         self.ref.observe(stack, ok)
         c = self.correlation_map(stack)
         n, big, _ = c.shape

@@ -61,10 +61,20 @@ def _rows(algorithm: str, *rows: tuple) -> tuple[Option, ...]:
 
 
 _SENSOR = {"unset": -1.0, "low": -1.0}
+_PUPIL = (
+    ("pupil_period", 140, "Frames between refits of the sodium profile estimated from the whole "
+     "pupil (and of what it implies: references, bias), e.g. 140 = 0.2 s at 700 Hz.",
+     {"low": 1, "high": 1000000}),
+    ("pupil_time_constant_s", 0.5, "Memory of the pupil profile estimate, seconds (exponential "
+     "average of the mean images; 0: each period alone), e.g. 0.5.", {"low": 0.0, "high": 3600.0}),
+    ("pupil_stride", 1, "Frames between frames added to the pupil calibration's mean images "
+     "(1: every frame), e.g. 2 halves its per-frame cost.", {"low": 1, "high": 10000}),
+)
 _HISTORY = (
-    ("reference", "history", "Where the reference image comes from: the mean of recent frames "
-     "(history), a static image given in Python (static) or a model spot at the subaperture "
-     "centre (model).", {"choices": ("history", "static", "model")}),
+    ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "
+     "estimated from the whole pupil (pupil), the mean of recent frames (history, the paper's), "
+     "a static image given in Python (static) or a model spot at the subaperture centre (model).",
+     {"choices": ("pupil", "history", "static", "model")}),
     ("history", 5, "Frames averaged into a history reference.", {"low": 1, "high": 10000}),
     ("include_current", True, "Include the current frame in the history reference."),
     ("update_period", 1, "Frames between reference updates.", {"low": 1, "high": 100000}),
@@ -74,7 +84,11 @@ _HISTORY = (
 
 OPTIONS: dict[str, tuple[Option, ...]] = {
     "cog": _rows("cog", ("background", -1.0, "Background subtracted per pixel, counts "
-                         "(-1: the sensor's background_e).", {**_SENSOR, "high": 1e6})),
+                         "(-1: the sensor's background_e).", {**_SENSOR, "high": 1e6}),
+                 ("bias", "none", "Bias removed from the plain CoG: none (the paper's CoG) or "
+                  "pupil (the CoG of each subaperture's spot of the sodium profile estimated "
+                  "from the whole pupil).", {"choices": ("none", "pupil")}),
+                 *_PUPIL),
     "tcog": _rows(
         "tcog",
         ("background", -1.0, "Background subtracted per pixel, counts (-1: the sensor's).",
@@ -104,8 +118,9 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
         ("constrained", True, "Constrain the filter to unit gain and zero cross-talk."),
         ("constraint_px", 1, "Half-width of the constraint's shift grid, pixels.",
          {"low": 1, "high": 4}),
-        ("weighting", "image", "Noise weighting of the filter: the reference image's own "
-         "variance (image) or the model spot's (model).", {"choices": ("image", "model")}),
+        ("weighting", "auto", "Noise weighting of the filter: the image's own variance "
+         "(image), the reference's (model, a filter fixed between reference updates) or auto "
+         "(image with a history reference, else model).", {"choices": ("auto", "image", "model")}),
         ("read_noise_e", -1.0, "Read noise in the weighting, e- (-1: the sensor's).",
          {**_SENSOR, "high": 1e3}),
         ("background", -1.0, "Background in the weighting, counts (-1: the sensor's).",
@@ -114,10 +129,12 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
          {"low": 1e-6, "high": 1e6}),
         ("derivative", "fourier", "How derivative images are made.",
          {"choices": ("fourier", "dither")}),
-        ("linearize", False, "Calibrate the filter's non-linear response once and invert it "
-         "every frame (exact to 1e-3 px within +-1 px)."),
+        ("linearize", True, "Calibrate the filter's non-linear response on the reference and "
+         "invert it every frame (exact to 1e-3 px within +-1 px); applies to fixed references "
+         "(pupil, model, static), not to history."),
         ("linearize_extent", 1.1, "Half-width of the calibrated response, pixels.",
          {"low": 0.1, "high": 4.0}),
+        *_PUPIL,
     ),
     "corr": _rows(
         "corr", *_HISTORY,
@@ -128,6 +145,7 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
         ("subtract_min", False, "Subtract the correlation's minimum before the peak finder."),
         ("background", -1.0, "Background subtracted per pixel, counts (-1: the sensor's).",
          {**_SENSOR, "high": 1e6}),
+        *_PUPIL,
     ),
     "ann": _rows("ann", ("model", "", "ONNX model: a name in models/ or a path (empty: the "
                                        "default model).", {"unset": ""})),

@@ -13,6 +13,9 @@ A reference is an ``(n, p, p)`` image per subaperture, in counts, in the block's
 - ``"model"``: a static reference built from the sensor description: Gaussian core of
   ``sensor.core_fwhm_px`` along a Gaussian sodium line of ``sodium_fwhm_m`` (10 km),
   ``sensor.photons`` counts, centred.
+- ``"pupil"``: the spot of the sodium profile estimated from the whole pupil
+  (:mod:`.pupil`), rendered exactly through each subaperture's geometry at the true
+  centre and installed (with exact derivatives) by the algorithm after every refit.
 
 Modelling point: a matched filter or a correlation measures the displacement of the
 image *relative to its reference*; we report that displacement as the slope, i.e. the
@@ -33,7 +36,7 @@ import numpy as np
 
 from .base import choice, number
 
-REFERENCE_SOURCES = ("history", "static", "model")
+REFERENCE_SOURCES = ("history", "static", "model", "pupil")
 
 
 def fourier_derivatives(stack: np.ndarray, dither: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +134,7 @@ class ReferenceSource:
             self.images = None
         elif self.source == "model":
             self.images = np.array(self._model, dtype=float)
-        else:                                   # static: keep an installed reference
+        else:                                   # static, pupil: keep an installed reference
             self.images = getattr(self, "images", None)
         self.version = getattr(self, "version", 0) + 1
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from functools import lru_cache
 
 import numpy as np
 
@@ -152,15 +151,15 @@ class Samples:
         return int(self.y.shape[0])
 
 
-# Measured profiles held out for validation: the last quarter of the 88 consecutive LZT
-# profiles (a contiguous block, so time-correlated neighbours are not split across sets).
-MEASURED_VALIDATION = tuple(range(66, 88))
+# Measured profiles held out for validation: the test block of the one split of the
+# measured night (sodium.measured_split: contiguous, so time-correlated neighbours are not
+# split across sets).
+MEASURED_VALIDATION = tuple(int(i) for i in sodium.measured_split("test"))
 
 
 def measured_split(n_profiles: int = 88) -> tuple[np.ndarray, np.ndarray]:
-    """``(train_idx, validation_idx)`` of the measured profiles."""
-    val = np.array([i for i in MEASURED_VALIDATION if i < n_profiles], dtype=int)
-    return np.setdiff1d(np.arange(n_profiles), val), val
+    """``(train_idx, validation_idx)`` of the measured profiles (:func:`sodium.measured_split`)."""
+    return sodium.measured_split("train", n_profiles), sodium.measured_split("test", n_profiles)
 
 
 PROFILE_MODELS = ("mvn", "independent", "mix")
@@ -192,17 +191,10 @@ def random_profiles(rng: np.random.Generator, n: int, altitude_m, how: str = "mv
     return out
 
 
-@lru_cache(maxsize=1)
 def _model():
-    """The random-profile model of the training sets: the package's fitted 5-Gaussian
-    statistics (:func:`sodium.load_model`) recomputed from the fits of the training split
-    of the measured profiles only (:func:`measured_split`), so no validation profile
-    informs the training distribution."""
-    full = sodium.load_model()
-    train, _ = measured_split(full.fits.shape[0])
-    return sodium.model_from_fits(full.fits[train], full.measured_centroid_m[train],
-                                  method=full.method,
-                                  info={"split": "measured profiles 0-65 (66-87 held out)"})
+    """The random-profile model of the training sets: :func:`sodium.training_model`, the
+    fitted statistics of the training split only, so no test profile informs training."""
+    return sodium.training_model()
 
 
 def normalise(images: np.ndarray, input_gain: float = 1.0) -> np.ndarray:

@@ -14,7 +14,7 @@ Cases (one subaperture, the paper's geometry ``Sensor.paper_single(detector)``):
   last 5 frames, the paper's) sees consecutive frames as it would on the sky.
 
 Every algorithm runs through :func:`lgs_wfs_ros.centroiding.make_centroider` frame by
-frame ("cog"; "cmf" with its defaults = the paper's history reference; "ann" with the
+frame ("cog"; "cmf" with reference="history", the paper's; "ann" with the
 model file), so the numbers include the ONNX metadata handling of the ann centroider.
 Errors: mean Euclidean ``|estimate - truth|`` (px and mas) and the mean per-axis absolute
 error (the paper does not say which one its "average error" is).
@@ -132,7 +132,8 @@ def errors(est: np.ndarray, truth: np.ndarray, mas_per_px: float = 500.0) -> dic
 def baseline(algorithm: str, detector: str, photons: float, profile: str, n: int) -> dict:
     """CoG or CMF errors on a case (cached)."""
     sensor, counts, t = case_frames(detector, photons, profile, n)
-    return errors(run_centroider(algorithm, sensor, counts), t)
+    opts = {"reference": "history"} if algorithm == "cmf" else {}   # the paper's CMF
+    return errors(run_centroider(algorithm, sensor, counts, **opts), t)
 
 
 def model_errors(path, detector: str, photons: float, profile: str, n: int) -> dict:

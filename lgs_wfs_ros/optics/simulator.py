@@ -385,7 +385,7 @@ def subaperture_batch(sensor: Sensor, rng: np.random.Generator, n: int, sigma_px
         n: number of samples.
         sigma_px: rms per axis of the normal random positions, pixels (detector axes).
         model: :class:`sodium.SodiumModel` for the random profiles (default
-            :func:`sodium.load_model`); ignored if ``density`` is given.
+            :func:`sodium.training_model`); ignored if ``density`` is given.
         altitude_m: ``(K,)`` grid of the profiles (default :func:`sodium.default_altitude_grid`).
         density: ``(K,)`` fixed profile or ``(n, K)`` profiles instead of random ones.
         photons: expected photons per image: scalar, ``(n,)``, or None for ``sensor.photons``.
@@ -408,7 +408,7 @@ def subaperture_batch(sensor: Sensor, rng: np.random.Generator, n: int, sigma_px
     h = sodium.default_altitude_grid() if altitude_m is None else np.asarray(altitude_m, float)
     fixed = None if density is None else np.asarray(density, dtype=float)
     if fixed is None and model is None:
-        model = sodium.load_model()
+        model = sodium.training_model()     # the training split's prior: never the test block
     ph = sensor.photons if photons is None else photons
     ph = np.broadcast_to(np.asarray(ph, dtype=float), (n,))
     smax = 6.0 * sigma_px if max_shift_px is None else float(max_shift_px)

@@ -18,6 +18,10 @@ Contents
 - :func:`centred_profile`, :func:`uncentred_profile`, :func:`gaussian_profile`: the fixed
   cases of the paper's figures and a symmetric test profile.
 - :class:`EvolvingProfile`: a profile interpolated linearly in time between lidar frames.
+- :func:`measured_split`, :func:`training_model`: the one split of the measured night
+  (train 0-65, test 66-87, contiguous) and the prior fitted on the train block only.
+- :func:`unseen_profiles`, :func:`unseen_sequence`, :data:`FAMILIES`: evolving test-block profiles moved, stretched,
+  squeezed or given a sporadic layer: skies no training prior holds.
 
 See ``docs/sodium.md`` for how the model was fitted and the numbers it gives.
 """
@@ -828,6 +832,132 @@ class EvolvingProfile:
     def at(self, t_s: float) -> np.ndarray:
         """Density ``(K,)`` at time ``t_s`` (s)."""
         return self.at_many(np.array([float(t_s)]))[0]
+
+
+# ---------------------------------------------------------------------------------------
+# splits of the measured night and unseen-profile families
+# ---------------------------------------------------------------------------------------
+# The 88 measured profiles are one night in time order (neighbours correlate at 0.98), so a
+# random split would leak: the splits are contiguous blocks. "train" feeds every fitted
+# prior (network training sets, the random-profile model behind them); "test" is never
+# trained or tuned on: the accuracy benchmark and the unseen-profile tests use it.
+MEASURED_SPLITS = {"train": (0, 66), "test": (66, 88)}
+
+
+def measured_split(name: str, n_profiles: int = 88) -> np.ndarray:
+    """Indices of the measured profiles in split ``name`` ("train": 0-65, "test": 66-87)."""
+    if name not in MEASURED_SPLITS:
+        raise ValueError(f"unknown split {name!r}; choose one of {sorted(MEASURED_SPLITS)}")
+    lo, hi = MEASURED_SPLITS[name]
+    return np.arange(min(lo, n_profiles), min(hi, n_profiles))
+
+
+_TRAINING_MODEL = []
+
+
+def training_model() -> SodiumModel:
+    """The random-profile model refitted from the training split's fits only (cached).
+
+    The package's :func:`load_model` statistics come from all 88 profiles; this one
+    (same fits, statistics of profiles 0-65) is what training sets must draw from, so no
+    test profile informs a trained prior.
+    """
+    if not _TRAINING_MODEL:
+        full = load_model()
+        train = measured_split("train", full.fits.shape[0])
+        lo, hi = MEASURED_SPLITS["train"]
+        _TRAINING_MODEL.append(model_from_fits(
+            full.fits[train], full.measured_centroid_m[train], method=full.method,
+            info={"split": f"measured profiles {lo}-{hi - 1} (the test block "
+                           f"{MEASURED_SPLITS['test'][0]}-{MEASURED_SPLITS['test'][1] - 1} held out)"}))
+    return _TRAINING_MODEL[0]
+
+
+# Families the training prior leaves out. Each is the test block of the measured night,
+# evolving in time (profiles 1 s apart, interpolated to the frame rate), transformed by a
+# fixed map drawn once per sequence, so shape changes stay realistic while the layer sits
+# where no training set put it.
+FAMILIES = ("measured", "high", "sporadic", "broad", "narrow")
+FAMILY_DOC = {
+    "measured": "the test block itself (centroid about 90.3 km, FWHM about 9 km)",
+    "high": "the test block moved up to a centroid of 100-105 km",
+    "sporadic": "plus a sporadic thin layer (FWHM 0.3-0.8 km) at 88-100 km holding 30-50 % "
+                "of the light",
+    "broad": "stretched 2-2.5x about its centroid (FWHM about 20 km)",
+    "narrow": "squeezed to 0.15-0.25x (FWHM about 1.5-2 km)",
+}
+
+
+def family_grid() -> np.ndarray:
+    """Grid of the family profiles: 65-135 km every 25 m, ``(2801,)`` (holds 'high' and
+    'broad' with their tails)."""
+    return np.linspace(65e3, 135e3, 2801)
+
+
+def unseen_sequence(family: str, n_frames: int, frame_rate_hz: float, seed: int = 0,
+                    seconds_per_profile: float = 1.0) -> tuple[EvolvingProfile, float]:
+    """The knots of an unseen-profile sequence and its start time.
+
+    Returns ``(evolving, t0_s)``: ``evolving.at_many(t0_s + k / frame_rate_hz)`` is frame
+    k's profile (:func:`unseen_profiles`). The knots are the family's map applied to each
+    measured test-block profile; the map is linear in the density, so interpolating the
+    mapped knots in time equals mapping the interpolated profile, and a frame's spot is the
+    same blend of the knots' spots (what the accuracy benchmark renders).
+    """
+    if family not in FAMILIES:
+        raise ValueError(f"unknown profile family {family!r}; choose one of {FAMILIES}")
+    if not (isinstance(n_frames, (int, np.integer)) and n_frames >= 1 and frame_rate_hz > 0):
+        raise ValueError("need n_frames >= 1 (integer) and frame_rate_hz > 0")
+    rng = np.random.default_rng([int(seed), FAMILIES.index(family)])
+    h_m, prof = load_measured()
+    test = prof[measured_split("test", prof.shape[0])]
+    span = n_frames / frame_rate_hz
+    duration = (test.shape[0] - 1) * seconds_per_profile
+    t0 = rng.uniform(0.0, max(duration - span, 0.0))
+    c0 = float(np.mean(centroid_altitude(h_m, EvolvingProfile(h_m, test, seconds_per_profile)
+                                         .at_many(t0 + np.linspace(0, span, 8)))))
+    h = family_grid()
+    scale, target = 1.0, c0
+    if family == "high":
+        target = rng.uniform(100e3, 105e3)
+    elif family == "broad":
+        scale = rng.uniform(2.0, 2.5)
+    elif family == "narrow":
+        scale = rng.uniform(0.15, 0.25)
+    # rho_new(h) = rho_src(c0 + (h - target) / scale) / scale: the same map for every knot
+    knots = _interp_rows(h_m, test, c0 + (h - target) / scale) / scale
+    if family == "sporadic":
+        frac = rng.uniform(0.3, 0.5)
+        layer = gaussian_profile(h, rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
+        mass = (knots * _weights(h)).sum(axis=1, keepdims=True)
+        knots = knots + layer[None, :] * (mass * frac / (1 - frac) / (layer * _weights(h)).sum())
+    return EvolvingProfile(h, knots, seconds_per_profile), t0
+
+
+def unseen_profiles(family: str, n_frames: int, frame_rate_hz: float, seed: int = 0,
+                    seconds_per_profile: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A sequence of unseen profiles, one per frame.
+
+    Args:
+        family: one of :data:`FAMILIES` (:data:`FAMILY_DOC` says what each is).
+        n_frames: frames (>= 1). frame_rate_hz: frames per second (> 0).
+        seed: draws the start time inside the test block and the family's map.
+        seconds_per_profile: time between the measured profiles (1 s, the LZT lidar).
+
+    Returns:
+        ``(altitude_m (K,), density (n_frames, K))`` on :func:`family_grid`; never drawn
+        from the training split.
+    """
+    evo, t0 = unseen_sequence(family, n_frames, frame_rate_hz, seed, seconds_per_profile)
+    return evo.altitude_m, evo.at_many(t0 + np.arange(n_frames) / frame_rate_hz)
+
+
+def _interp_rows(x: np.ndarray, rows: np.ndarray, xq: np.ndarray) -> np.ndarray:
+    """Linear interpolation of every row of ``rows (F, K)`` on ``x`` at ``xq`` (0 outside)."""
+    i = np.clip(np.searchsorted(x, xq) - 1, 0, x.size - 2)
+    w = np.clip((xq - x[i]) / (x[i + 1] - x[i]), 0.0, 1.0)
+    inside = (xq >= x[0]) & (xq <= x[-1])
+    return np.where(inside, (1 - w) * rows[:, i] + w * rows[:, i + 1], 0.0)
 
 
 # ---------------------------------------------------------------------------------------

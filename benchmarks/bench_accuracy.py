@@ -1,0 +1,453 @@
+"""Accuracy on sodium profiles no estimator was built on: full pupil, evolving profiles.
+
+For every case (profile family x detector x launch x tilt model) the frames are rendered
+exactly (:class:`lgs_wfs_ros.optics.spots.SpotModel`) from the unseen families of
+:func:`lgs_wfs_ros.optics.sodium.unseen_sequence` (the measured night's test block, 1 s
+profiles interpolated to 700 Hz, moved / stretched / squeezed / given a sporadic layer),
+with per-subaperture tilts from
+
+- ``ar1``: closed-loop-like residuals, AR(1) with 0.95 per frame, 0.46 px rms per axis,
+  independent between subapertures;
+- ``frozen_inf`` / ``frozen_30``: the simulator's frozen flow (r0 0.15 m, 10 m/s), L0
+  infinite / 30 m;
+
+and Poisson noise at 316 and 1000 photons per subaperture (inside the field). Each
+estimator (built by ``options.build``: the node's defaults) sees warm-up frames, then the
+scored frames. Reported per estimator: mean 2-D error and mean absolute error per axis
+(mas), raw and with the pupil-wide tip, tilt and focus removed from the error (the same as
+removing them from estimate and truth), the ratio to cog and to the Cramer-Rao bound of the
+same frames (exact model of each sampled frame, profile known; the bound's 3 removed modes
+out of 5,568 slopes change it by < 0.1 %, so the raw bound is used for both), and the CPU
+time per frame: the per-frame part (frames without a refit) and the mean refit.
+
+Plus the paper's Table 3 case: one subaperture (r = 14.75 m), the measured profiles from
+profile 66 on (the held-out block), frozen flow at 10 m/s, 1000 photons.
+
+Run: ``python benchmarks/bench_accuracy.py [--quick]`` (writes ``benchmarks/accuracy.json``
+and ``benchmarks/accuracy.md``); ``benchmarks/run.py`` runs it too.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from lgs_wfs_ros.analysis import metrics  # noqa: E402
+from lgs_wfs_ros.analysis.report import crb_covariances, mean_abs_norm  # noqa: E402
+from lgs_wfs_ros.centroiding import options as table  # noqa: E402
+from lgs_wfs_ros.optics import geometry, sodium  # noqa: E402
+from lgs_wfs_ros.optics.spots import SpotModel  # noqa: E402
+from lgs_wfs_ros.sensor import Sensor  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+MAS = 500.0
+PHOTONS = (316.0, 1000.0)
+#: label -> (algorithm, options over the table's defaults)
+ESTIMATORS = {
+    "cog": ("cog", {}),
+    "cog_pupil": ("cog", {"bias": "pupil"}),
+    "cmf": ("cmf", {}),
+    "corr": ("corr", {}),
+    "cmf_history": ("cmf", {"reference": "history"}),
+    "ann_pupil": ("ann", {"model": "ann_pupil"}),
+}
+QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ann_pupil")
+AR1_RHO, AR1_RMS_PX = 0.95, 0.46
+SIDE_LAUNCH_M = 16.0
+
+
+def full_cases():
+    out = []
+    for fam in sodium.FAMILIES:
+        for det in ("polar", "cartesian"):
+            for launch in (0.0, SIDE_LAUNCH_M):
+                out.append((fam, det, launch, "ar1"))
+    for fam in ("measured", "broad"):
+        for tilt in ("frozen_inf", "frozen_30"):
+            out.append((fam, "polar", 0.0, tilt))
+    return out
+
+
+#: the costliest estimator (an FFT correlation per subaperture, ~55 ms a frame) runs in the
+#: first quick case only
+QUICK_ONCE = ("corr",)
+
+
+def quick_cases():
+    out = [(fam, "polar", 0.0, "ar1") for fam in sodium.FAMILIES]
+    out += [("measured", "cartesian", 0.0, "ar1"), ("measured", "polar", SIDE_LAUNCH_M, "ar1"),
+            ("measured", "cartesian", SIDE_LAUNCH_M, "ar1"),
+            ("measured", "polar", 0.0, "frozen_inf"), ("measured", "polar", 0.0, "frozen_30")]
+    return out
+
+
+# -- truth ---------------------------------------------------------------------------------------
+def tilts(kind: str, sensor: Sensor, frames: int, seed: int) -> np.ndarray:
+    """``(frames, n, 2)`` true displacements, px, detector axes."""
+    n = geometry.layout(sensor).n_valid
+    if kind == "ar1":
+        rng = np.random.default_rng([seed, 1])
+        out = np.empty((frames, n, 2))
+        t = rng.normal(0.0, AR1_RMS_PX, (n, 2))
+        innov = AR1_RMS_PX * math.sqrt(1 - AR1_RHO ** 2)
+        for k in range(frames):
+            t = AR1_RHO * t + rng.normal(0.0, innov, (n, 2))
+            out[k] = t
+        return out
+    from lgs_wfs_ros.optics.turbulence import FrozenFlow
+    l0 = {"frozen_inf": math.inf, "frozen_30": 30.0}[kind]
+    return FrozenFlow(sensor.replace(outer_scale_m=l0), seed).tilts(frames)
+
+
+class Renderer:
+    """Noise-free images of an evolving profile: a blend of its knots' spots (exact, since a
+    spot is linear in the density)."""
+
+    def __init__(self, sensor: Sensor, evo, t0: float, max_shift: float):
+        self.sensor, self.evo, self.t0 = sensor, evo, t0
+        lay = geometry.layout(sensor)
+        self.r, self.e, self.max_shift = lay.r_m, lay.e, max_shift
+        w = np.gradient(evo.altitude_m)
+        self.mass = (evo.profiles * w).sum(axis=1)
+        self.models = {}
+
+    def model(self, i):
+        if i not in self.models:
+            self.models = {k: v for k, v in self.models.items() if k >= i - 1}
+            self.models[i] = SpotModel(self.sensor, self.r, self.e, self.evo.altitude_m,
+                                       self.evo.profiles[i], max_shift_px=self.max_shift)
+        return self.models[i]
+
+    def images(self, k: int, shift: np.ndarray) -> np.ndarray:
+        """``(n, p, p)`` unit-light images of frame ``k`` at ``shift (n, 2)``."""
+        f = (self.t0 + k / self.sensor.frame_rate_hz) / self.evo.seconds_per_profile
+        i = min(int(f), self.evo.n_profiles - 2)
+        w = min(max(f - i, 0.0), 1.0)
+        a, b = (1 - w) * self.mass[i], w * self.mass[i + 1]
+        out = self.model(i).images(shift)[0] * a
+        if b > 0:
+            out += self.model(i + 1).images(shift)[0] * b
+        return out / (a + b)
+
+
+# -- scoring -------------------------------------------------------------------------------------
+def ttf_modes(sensor: Sensor) -> np.ndarray:
+    """``(2n, 3)`` orthonormal slope patterns of tip, tilt and focus (x, y interleaved)."""
+    lay = geometry.layout(sensor)
+    xy = lay.centre_xy_m
+    n = xy.shape[0]
+    m = np.zeros((n, 2, 3))
+    m[:, 0, 0] = 1.0
+    m[:, 1, 1] = 1.0
+    m[:, :, 2] = xy
+    q, _ = np.linalg.qr(m.reshape(2 * n, 3))
+    return q
+
+
+def remove_ttf(err: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``(F, n, 2)`` errors minus their tip, tilt and focus (per frame; NaN subapertures
+    left out of the fit)."""
+    f, n, _ = err.shape
+    e = err.reshape(f, 2 * n)
+    ok = np.isfinite(e)
+    out = np.full_like(e, np.nan)
+    for k in range(f):
+        good = ok[k]
+        coef, *_ = np.linalg.lstsq(q[good], e[k, good], rcond=None)
+        out[k, good] = e[k, good] - q[good] @ coef
+    return out.reshape(f, n, 2)
+
+
+def score(err: np.ndarray, q: np.ndarray | None) -> dict:
+    raw = metrics.summarize(err, MAS)
+    out = {"mean_2d_mas": raw["mean_euclid_mas"], "mae_x_mas": raw["mae_x_mas"],
+           "mae_y_mas": raw["mae_y_mas"], "bias_x_mas": raw["bias_x_mas"],
+           "bias_y_mas": raw["bias_y_mas"], "n_nan": raw["n_nan"]}
+    if q is not None:
+        t = metrics.summarize(remove_ttf(err, q), MAS)
+        out.update({"ttf_mean_2d_mas": t["mean_euclid_mas"], "ttf_mae_x_mas": t["mae_x_mas"],
+                    "ttf_mae_y_mas": t["mae_y_mas"]})
+    return out
+
+
+def build(labels, sensor):
+    out = {}
+    for lb in labels:
+        alg, opts = ESTIMATORS[lb]
+        try:
+            out[lb] = table.build(alg, sensor, opts)
+        except (ValueError, FileNotFoundError) as exc:        # e.g. no ann model installed
+            print(f"  {lb}: not run ({exc})", file=sys.stderr)
+    return out
+
+
+def refits(c) -> int:
+    pupil = getattr(c, "pupil", None)
+    return -1 if pupil is None else pupil.fits
+
+
+def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_samples=8, log=print,
+             single=False):
+    """One case at both photon levels: ``{"photons": {ph: {label: score}}, "crb", "cpu"}``."""
+    if single:
+        base = Sensor.paper_single(det)
+    else:
+        base = Sensor(detector=det, launch_xy_m=(launch, 0.0))
+    frames = warm + scored
+    if single:                                   # the paper's Table 3: measured, from profile 66
+        h_m, prof = sodium.load_measured()
+        evo = sodium.EvolvingProfile(h_m, prof[sodium.measured_split("test")])
+        t0 = 0.0
+    else:
+        evo, t0 = sodium.unseen_sequence(family, frames, base.frame_rate_hz, seed)
+    truth = tilts(tilt, base, frames, seed)
+    rend = Renderer(base, evo, t0, float(np.abs(truth).max()) + 1.0)
+    lay = geometry.layout(base)
+    q = None if single else ttf_modes(base)
+    rng = np.random.default_rng([seed, 7])
+    res = {"photons": {}, "cpu_ms": {}}
+    cents = {ph: build(labels, base.replace(photons=ph)) for ph in PHOTONS}
+    errs = {ph: {lb: [] for lb in cents[ph]} for ph in PHOTONS}
+    cpu = {lb: [0.0, 0, 0.0, 0] for lb in cents[PHOTONS[-1]]}      # frame s, frames, refit s, refits
+    for k in range(frames):
+        img = rend.images(k, truth[k])
+        img = img / img.reshape(img.shape[0], -1).sum(axis=1)[:, None, None]
+        for ph in PHOTONS:
+            counts = geometry.stack_to_frame(rng.poisson(img * ph).astype(np.uint16), lay)  # as live
+            for lb, c in cents[ph].items():
+                before = refits(c)
+                t = time.process_time()
+                est = c.centroid(counts)
+                dt = time.process_time() - t
+                if ph == PHOTONS[-1]:            # first frame and refits: set-up, not per frame
+                    slot = 2 if (refits(c) != before or k == 0) else 0
+                    cpu[lb][slot] += dt
+                    cpu[lb][slot + 1] += 1
+                if k >= warm:
+                    errs[ph][lb].append(est - truth[k])
+    # CRB of the scored frames (unit photons; the bound scales as 1/N with photon noise only)
+    idx = np.unique(np.linspace(warm, frames - 1, crb_samples).astype(int))
+
+    def image_at(j, s):
+        k = idx[j]
+        norm = rend.images(k, truth[k]).reshape(truth.shape[1], -1).sum(axis=1)[:, None, None]
+        return rend.images(k, s) / norm
+    unit = crb_covariances(base.replace(photons=1.0), image_at, truth[idx])
+    crb = {}
+    for ph in PHOTONS:
+        cov = unit / ph
+        crb[str(int(ph))] = {"mean_2d_mas": float(np.nanmean(mean_abs_norm(cov))) * MAS,
+                             "mae_mas": float(np.nanmean(math.sqrt(2 / math.pi)
+                                                         * np.sqrt(np.einsum("nii->ni", cov)))) * MAS}
+        table_ph = {}
+        for lb, e in errs[ph].items():
+            table_ph[lb] = score(np.array(e), q)
+        cog = table_ph.get("cog")
+        for lb, s in table_ph.items():
+            s["ratio_crb"] = s["mean_2d_mas"] / crb[str(int(ph))]["mean_2d_mas"]
+            if q is not None:
+                s["ttf_ratio_crb"] = s["ttf_mean_2d_mas"] / crb[str(int(ph))]["mean_2d_mas"]
+            if cog:
+                s["ratio_cog"] = s["mean_2d_mas"] / cog["mean_2d_mas"]
+                if q is not None:
+                    s["ttf_ratio_cog"] = s["ttf_mean_2d_mas"] / cog["ttf_mean_2d_mas"]
+        res["photons"][str(int(ph))] = table_ph
+    res["crb"] = crb
+    res["cpu_ms"] = {lb: {"per_frame": 1e3 * v[0] / max(v[1], 1),
+                          "refit": (1e3 * v[2] / v[3]) if v[3] else None, "refits": v[3]}
+                     for lb, v in cpu.items()}
+    res.update({"family": family, "detector": det, "launch_m": launch, "tilts": tilt,
+                "warm_frames": warm, "scored_frames": scored, "n_subaps": int(truth.shape[1]),
+                "truth_rms_px": float(np.sqrt(np.mean(truth[warm:] ** 2)))})
+    log(f"  {family:<9} {det:<9} launch {launch:4.1f} m {tilt:<10}: " + "; ".join(
+        f"{ph}: " + ", ".join(f"{lb} {v['mean_2d_mas']:.1f}" for lb, v in res["photons"][ph].items())
+        + f", CRB {crb[ph]['mean_2d_mas']:.1f}" for ph in res["photons"]), flush=True)
+    return res
+
+
+# -- output --------------------------------------------------------------------------------------
+def summary(result: dict) -> list[str]:
+    """Per estimator: mean and worst ratio to the CRB (and mean ratio to cog) over the AR(1)
+    cases (raw) and the frozen-flow cases (tip, tilt and focus removed), per photon level."""
+    cases = result["cases"]
+    labels = [lb for lb in ESTIMATORS if any(lb in c["photons"]["1000"] for c in cases)]
+    lines = ["| estimator | tilts | photons | mean x CRB | worst x CRB | mean x cog | cases |",
+             "|---|---|---|---|---|---|---|"]
+    for lb in labels:
+        for tilt, key in (("ar1", ""), ("frozen", "ttf_")):
+            for ph in ("316", "1000"):
+                rows = [c["photons"][ph][lb] for c in cases
+                        if c["tilts"].startswith(tilt) and lb in c["photons"][ph]]
+                if not rows:
+                    continue
+                crb = [r[key + "ratio_crb"] for r in rows]
+                cog = [r.get(key + "ratio_cog", float("nan")) for r in rows]
+                what = "AR(1), raw" if tilt == "ar1" else "frozen flow, TTF removed"
+                lines.append(f"| {lb} | {what} | {ph} | {np.mean(crb):.2f} | {np.max(crb):.2f} | "
+                             f"{np.mean(cog):.2f} | {len(rows)} |")
+    return lines
+
+
+def markdown(result: dict, title: bool = True) -> str:
+    cases = result["cases"]
+    labels = [lb for lb in ESTIMATORS if any(lb in c["photons"]["1000"] for c in cases)]
+    lines = ([f"# Accuracy on unseen sodium profiles ({result['mode']})", ""] if title else []) + [
+             result["what"], "", "### Summary", ""] + summary(result) + [
+             "", "Mean 2-D error in mas (ratio to the CRB of the same frames in brackets); raw, then "
+             "with the pupil-wide tip, tilt and focus removed.", ""]
+    for key, title in (("", "raw"), ("ttf_", "tip, tilt and focus removed")):
+        lines += [f"### {title}", "",
+                  "| family | detector | launch | tilts | photons | " + " | ".join(labels) + " | CRB |",
+                  "|" + "---|" * (6 + len(labels))]
+        for c in cases:
+            for ph, row in c["photons"].items():
+                cells = []
+                for lb in labels:
+                    s = row.get(lb)
+                    cells.append("-" if s is None else
+                                 f"{s[key + 'mean_2d_mas']:.1f} ({s[key + 'ratio_crb']:.2f})")
+                lines.append(f"| {c['family']} | {c['detector']} | {c['launch_m']:g} m | {c['tilts']} "
+                             f"| {ph} | " + " | ".join(cells) + f" | {c['crb'][ph]['mean_2d_mas']:.1f} |")
+        lines.append("")
+    t3 = result.get("table3")
+    if t3:
+        lines += ["### The paper's Table 3 case (one subaperture, r = 14.75 m, evolving measured "
+                  "profiles from profile 66, frozen flow 10 m/s, 1000 photons)", "",
+                  "| detector | " + " | ".join(labels) + " | CRB | paper ANN / CoG |",
+                  "|" + "---|" * (3 + len(labels))]
+        for c in t3:
+            row = c["photons"]["1000"]
+            cells = ["-" if lb not in row else
+                     f"{row[lb]['mean_2d_mas']:.1f} ({row[lb]['ratio_cog']:.0%} of cog)" for lb in labels]
+            lines.append(f"| {c['detector']} | " + " | ".join(cells)
+                         + f" | {c['crb']['1000']['mean_2d_mas']:.1f} | {c['paper_ann_over_cog']:.0%} |")
+        lines.append("")
+    lines += ["### CPU per full frame (ms, one core; per-frame part / mean refit)", "",
+              "| estimator | per frame | set-up / refit | set-up + refits per case |", "|---|---|---|---|"]
+    for lb, v in result["cpu_ms"].items():
+        refit = "-" if v["refit"] is None else f"{v['refit']:.0f}"
+        lines.append(f"| {lb} | {v['per_frame']:.2f} | {refit} | {v['refits']} |")
+    return "\n".join(lines) + "\n"
+
+
+PAPER_T3 = {"polar": 88.06 / 237.31, "cartesian": 122.78 / 236.82}
+
+
+def main(quick: bool = False, out_dir: Path = HERE, log=print) -> dict:
+    t_start = time.time()
+    if quick:
+        warm, scored, cases, labels, t3_frames = 210, 140, quick_cases(), QUICK_ESTIMATORS, 1400
+    else:
+        warm, scored, cases, labels, t3_frames = 700, 700, full_cases(), tuple(ESTIMATORS), 7000
+    what = (f"{warm} warm-up + {scored} scored frames at 700 Hz per case, full pupil "
+            f"(2,784 subapertures), photons {', '.join(f'{p:g}' for p in PHOTONS)}, "
+            f"side launch {SIDE_LAUNCH_M:g} m off axis, AR(1) tilts {AR1_RHO} per frame "
+            f"{AR1_RMS_PX} px rms per axis; estimators built with options.build (the node's "
+            f"defaults) plus: " + "; ".join(f"{lb} = {ESTIMATORS[lb][0]} {ESTIMATORS[lb][1] or ''}"
+                                              for lb in labels))
+    if quick:
+        what += f"; {', '.join(QUICK_ONCE)} in the first case only (its FFTs cost ~55 ms a frame)"
+    out = {"mode": "quick" if quick else "full", "what": what, "cases": [], "table3": []}
+    for i, (fam, det, launch, tilt) in enumerate(cases):
+        extra = QUICK_ONCE if (quick and i == 0) else ()
+        out["cases"].append(run_case(fam, det, launch, tilt, warm, scored, labels + extra, log=log))
+        _save(out, out_dir, t_start)                                   # partial results
+    for det in ("polar", "cartesian"):
+        c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, crb_samples=50,
+                     log=log, single=True)
+        c["paper_ann_over_cog"] = PAPER_T3[det]
+        out["table3"].append(c)
+    _save(out, out_dir, t_start)
+    write_docs(out)
+    return out
+
+
+def _save(out: dict, out_dir: Path, t_start: float) -> None:
+    out["seconds"] = round(time.time() - t_start, 1)
+    cpu = {}
+    for c in out["cases"]:
+        for lb, v in c["cpu_ms"].items():
+            d = cpu.setdefault(lb, {"per_frame": [], "refit": [], "refits": 0})
+            d["per_frame"].append(v["per_frame"])
+            if v["refit"] is not None:
+                d["refit"].append(v["refit"])
+            d["refits"] = v["refits"]
+    out["cpu_ms"] = {lb: {"per_frame": float(np.median(v["per_frame"])),
+                          "refit": float(np.median(v["refit"])) if v["refit"] else None,
+                          "refits": v["refits"]} for lb, v in cpu.items()}
+    (out_dir / "accuracy.json").write_text(json.dumps(out, indent=1) + "\n")
+    (out_dir / "accuracy.md").write_text(markdown(out))
+
+
+DOC = HERE.parent / "docs" / "accuracy.md"
+
+
+def write_docs(result: dict, path: Path = DOC) -> None:
+    """Replace the generated block of docs/accuracy.md with this run's tables."""
+    if not path.is_file():
+        return
+    text = path.read_text()
+    begin, end = "<!-- accuracy:begin -->", "<!-- accuracy:end -->"
+    if begin not in text or end not in text:
+        return
+    block = (f"{begin}\n(generated by `python benchmarks/bench_accuracy.py"
+             f"{' --quick' if result['mode'] == 'quick' else ''}`, {result['seconds']:.0f} s; "
+             f"also in benchmarks/accuracy.md and accuracy.json)\n\n"
+             + markdown(result, title=False) + end)
+    path.write_text(text[:text.index(begin)] + block + text[text.index(end) + len(end):])
+
+
+def run(quick: bool = False) -> list[dict]:
+    """Rows for benchmarks/run.py: the best ratio to the CRB per photon level (unseen families,
+    AR(1), full pupil) and each estimator's per-frame CPU time."""
+    return rows(main(quick))
+
+
+def rows(res: dict) -> list[dict]:
+    """benchmarks/run.py rows of a result."""
+    rows = []
+    for ph in ("316", "1000"):
+        for lb in ("cog", "cog_pupil", "cmf"):
+            vals = [c["photons"][ph][lb]["ratio_crb"] for c in res["cases"]
+                    if c["tilts"] == "ar1" and lb in c["photons"][ph]]
+            if vals:
+                rows.append({"name": f"accuracy {lb} worst ratio to CRB, AR(1), {ph} ph",
+                             "value": float(max(vals)), "unit": "x CRB",
+                             "target": {"cmf": "<= 1.1", "cog_pupil": "<= 1.1 centre, 1.3 side"}.get(lb, ""),
+                             "note": f"{len(vals)} cases ({res['mode']})"})
+    for lb, v in res["cpu_ms"].items():
+        rows.append({"name": f"accuracy {lb} CPU per full frame", "value": v["per_frame"],
+                     "unit": "ms", "target": "<= 1", "note": "per-frame part; refit "
+                     + ("-" if v["refit"] is None else f"{v['refit']:.0f} ms every period")})
+    return rows
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames and cases (minutes)")
+    ap.add_argument("--tables-only", action="store_true",
+                    help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
+    args = ap.parse_args()
+    if args.tables_only:
+        res = json.loads((HERE / "accuracy.json").read_text())
+        (HERE / "accuracy.md").write_text(markdown(res))
+        write_docs(res)
+        results = HERE / "results.json"                 # as `run.py --only accuracy` would
+        if results.is_file():
+            allres = json.loads(results.read_text())
+            allres.setdefault("areas", {})["accuracy"] = {"rows": rows(res), "seconds": res["seconds"]}
+            results.write_text(json.dumps(allres, indent=2) + "\n")
+    else:
+        main(args.quick)
+    print((HERE / "accuracy.md").read_text())

@@ -1,0 +1,366 @@
+"""Pupil calibration: a running estimate of the sodium profile from the whole pupil.
+
+Every subaperture sees the same sodium profile through a known geometry: sodium at
+altitude ``h`` images at ``r cos z (1/h_ref - 1/h)`` along ``e`` (docs/conventions.md
+section 3). Tilts differ from subaperture to subaperture and average out over the pupil
+and over time, so the mean images of all subapertures, fitted together, give the profile,
+and with it every subaperture's reference spot and the bias of any fixed estimator.
+
+Method (plain numpy, vectorised over subapertures; docs/accuracy.md):
+
+1. Accumulate: every ``stride``-th frame, the background-subtracted counts of each valid
+   subaperture are added up (``(n, p*p)``, one addition per frame).
+2. Every ``period`` frames: each subaperture's mean image is normalised to unit light,
+   projected on 1-px bins along its elongation (:class:`.model_spot.Projection`: tilts
+   across ``e`` drop out) and blended into an exponential average with time constant
+   ``time_constant_s`` (the profile evolves over seconds).
+3. Fit: non-negative least squares of all subapertures' projected means against thin
+   layers (hats on ``nodes`` altitudes evenly spaced in 1/h, 70-130 km) rendered through
+   each subaperture's exact geometry (launch position, zenith angle, detector type,
+   truncation at the field edge): ``z_s c_s = B_s x``, ``c_s = 1^T B_s x`` the fraction
+   of the light inside subaperture s's field (iterated), with a light second-difference
+   smoothing. ``x`` is the light per layer: the profile.
+4. From ``x``: each subaperture's noise-free reference (:class:`.model_spot.ProfileSpots`,
+   rendered exactly, with exact derivatives) and the CoG bias it implies (the CoG of that
+   reference: what a plain CoG reads for a spot at the true centre).
+
+What fixes the origin: the fit puts the profile where the pupil-mean images are, i.e. it
+assumes the tilts averaged over the window carry no pupil-wide pattern ``proportional to
+r along e`` from the launch. That pattern is focus (for a centre launch) and is exactly a
+change of the profile's altitude: an LGS cannot tell them apart, and LGS AO takes focus
+from a natural-guide-star sensor. Everything else (tip, tilt, higher modes, independent
+tilts) averages out or shows up as residual.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import cho_factor, solve_triangular
+from scipy.optimize import nnls
+
+from ..optics import geometry
+from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_density, projected_hats
+from ..optics.sodium import gaussian_profile, harmonic_altitude
+from .base import number
+
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+class PupilCalibration:
+    """Running sodium-profile estimate of one sensor and the references it implies.
+
+    Args:
+        sensor: the :class:`lgs_wfs_ros.sensor.Sensor` (full pupil; a single subaperture
+            works too, but one radius cannot separate the profile from its tilt).
+        period: frames between profile refits (and reference updates).
+        time_constant_s: time constant of the exponential average of the projected mean
+            images, seconds (the profile's memory).
+        stride: accumulate every ``stride``-th frame (1: all).
+        nodes: thin layers of the profile basis (70-130 km, even in 1/h).
+        smoothing: weight of the second-difference penalty, relative to the mean diagonal
+            of the normal matrix.
+        prior_fwhm_m: FWHM of the Gaussian profile (harmonic altitude at h_ref) used until
+            the first fit.
+        max_shift_px: largest shift the reference renderer must handle (linearisation).
+        background: counts per pixel in the frames given to :meth:`observe`, removed from
+            the mean images.
+    """
+
+    def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.5, stride: int = 1,
+                 nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
+                 max_shift_px: float = 2.0, background: float = 0.0):
+        self.sensor = sensor
+        self.background = number("background", background, minimum=0)
+        self.layout = geometry.layout(sensor)
+        self.n = self.layout.n_valid
+        self.period = number("pupil_period", period, minimum=1, integer=True)
+        self.time_constant_s = number("pupil_time_constant_s", time_constant_s, minimum=0)
+        self.stride = number("pupil_stride", stride, minimum=1, integer=True)
+        self.smoothing = number("pupil_smoothing", smoothing, minimum=0)
+        self.max_shift_px = number("max_shift_px", max_shift_px, minimum=0)
+        nodes = number("pupil_nodes", nodes, minimum=8, integer=True)
+        self.nodes_m = altitude_nodes(sensor, nodes)
+        polar = sensor.detector == "polar"
+        e_pix = np.tile([1.0, 0.0], (self.n, 1)) if polar else np.asarray(self.layout.e, float)
+        self.projection = Projection(sensor, e_pix, 1.0)
+        self._basis = None
+        self.blur_px = 0.0
+        y, x = np.indices((sensor.pixels, sensor.pixels), dtype=float)
+        c = (sensor.pixels - 1) / 2
+        self._u_perp = (-(x.ravel() - c)[None, :] * e_pix[:, 1:]
+                        + (y.ravel() - c)[None, :] * e_pix[:, :1])              # (n, pp) across e
+        self.prior = self._prior_light(number("prior_fwhm_m", prior_fwhm_m, minimum=0, strict=True))
+        self.reset()
+
+    # -- state ------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget everything seen: back to the prior profile."""
+        self._acc = np.zeros((self.n, self.sensor.pixels ** 2))
+        self._acc_rows = None                    # (G*G, p*p) float32, see observe_rows
+        self._acc_frame = None                   # a detector frame's shape, see observe_frame
+        self._count = np.zeros(self.n)
+        self._frames = 0
+        self.state = None
+        self.flux = None
+        self._state_ok = np.zeros(self.n, dtype=bool)
+        self.light = self.prior.copy()
+        self.fits = 0
+        self.version = getattr(self, "version", 0) + 1
+        self._refs = None
+
+    def _prior_light(self, fwhm_m: float) -> np.ndarray:
+        """Light per node of a Gaussian layer whose harmonic altitude is h_ref."""
+        h = self.nodes_m
+        centre = self.sensor.h_ref_m
+        for _ in range(3):                                   # harmonic altitude -> h_ref
+            dens = gaussian_profile(h, centre, fwhm_m)
+            centre += self.sensor.h_ref_m - harmonic_altitude(h, dens)
+        ext, _ = node_density(h, np.ones_like(h))
+        width = 0.5 * (ext[2:] - ext[:-2])
+        light = gaussian_profile(h, centre, fwhm_m) * width
+        return light / light.sum()
+
+    @property
+    def basis(self) -> np.ndarray:
+        """``(n, nb, K)`` projected thin-layer spots (built on first use, ~1-2 s)."""
+        if self._basis is None:
+            # the mean image of a spot under random tilts of rms s per axis is the spot with
+            # its Gaussian core widened by s: fit the means against spots so blurred
+            core = math.hypot(self.sensor.core_fwhm_px, FWHM_PER_SIGMA * self.blur_px)
+            b = projected_hats(self.sensor.replace(core_fwhm_px=core), self.layout.r_m,
+                               self.layout.e, self.nodes_m, self.projection)
+            self._basis = b
+            self._colsum = b.sum(axis=1)                                       # (n, K)
+            self._gram = np.einsum("snk,snl->kl", b, b)
+            k = b.shape[2]
+            d2 = np.diff(np.eye(k), 2, axis=0)
+            self._rough = d2.T @ d2
+        return self._basis
+
+    # -- per frame --------------------------------------------------------------------
+    def observe(self, flat: np.ndarray, ok: np.ndarray | None = None) -> bool:
+        """Account for one frame before it is measured.
+
+        Args:
+            flat: ``(n, p*p)`` background-subtracted counts of the valid subapertures.
+            ok: ``(n,)`` bool, subapertures usable in this frame (default: finite, > 0).
+
+        Returns:
+            True when this frame completed a period and the profile was refitted.
+        """
+        if self._frames % self.stride == 0:
+            f = np.asarray(flat)
+            if ok is None:
+                tot = f.sum(axis=1)
+                ok = np.isfinite(tot) & (tot > 0)
+            if ok.all():
+                self._acc += f
+                self._count += 1
+            else:
+                self._acc[ok] += f[ok]
+                self._count[ok] += 1
+        return self._tick()
+
+    def observe_rows(self, rows: np.ndarray, valid_rows: np.ndarray) -> bool:
+        """As :meth:`observe` for every block of a frame, ``rows (G*G, p*p)`` float32 (a
+        centroider's cast-and-cut buffer), valid ones at ``valid_rows (n,)``: one float32
+        addition, no gather (the cheapest per-frame path). A subaperture with a bad pixel
+        in a period is left out of that period's mean."""
+        self._rows_index = valid_rows
+        return self._add_whole("_acc_rows", rows, np.float32)
+
+    def observe_frame(self, frame: np.ndarray) -> bool:
+        """As :meth:`observe` for a whole detector frame ``(G*p, G*p)`` of integer counts:
+        added as it is into an integer accumulator (no cut, no float copy), cut into
+        subapertures only at the refit."""
+        kind = np.uint32 if frame.dtype.kind == "u" and frame.dtype.itemsize <= 2 else np.float64
+        return self._add_whole("_acc_frame", frame, kind)
+
+    def _add_whole(self, name: str, data: np.ndarray, dtype) -> bool:
+        """Add a whole array into the accumulator ``name`` (made on first use)."""
+        if self._frames % self.stride == 0:
+            buf = getattr(self, name)
+            if buf is None or buf.shape != data.shape:
+                buf = np.zeros(data.shape, dtype=dtype)
+                setattr(self, name, buf)
+            np.add(buf, data, out=buf, casting="unsafe")
+            self._count += 1
+        return self._tick()
+
+    def _tick(self) -> bool:
+        """Count a frame; refit at the end of a period (returns True then)."""
+        self._frames += 1
+        if self._frames % self.period == 0:
+            self.refit()
+            return True
+        return False
+
+    # -- fit --------------------------------------------------------------------------
+    def refit(self) -> None:
+        """Blend the accumulated mean images into the average and refit the profile."""
+        if self._acc_frame is not None:
+            stack = geometry.frame_to_stack(self._acc_frame, self.layout)
+            self._acc += stack.reshape(self.n, -1)
+            self._acc_frame[:] = 0
+        if self._acc_rows is not None:
+            self._acc += self._acc_rows[self._rows_index]
+            self._acc_rows[:] = 0.0
+        good = (self._count > 0) & np.isfinite(self._acc).all(axis=1)
+        if not good.any():
+            return
+        mean = self._acc / np.maximum(self._count, 1)[:, None] - self.background
+        proj = self.projection(mean)                                            # (n, nb)
+        tot = proj.sum(axis=1)
+        good &= np.isfinite(tot) & (tot > 0)
+        z = np.where(good[:, None], proj / np.where(good, tot, 1.0)[:, None], 0.0)
+        self._update_blur(mean, good)
+        if self.state is None:
+            self.state, self.flux = z, np.where(good, tot, self.sensor.photons)
+        else:
+            rate = self.sensor.frame_rate_hz
+            a = math.exp(-self.period / (self.time_constant_s * rate)) if self.time_constant_s > 0 else 0.0
+            fresh = good & ~self._state_ok
+            blend = good & self._state_ok
+            self.state[blend] = a * self.state[blend] + (1 - a) * z[blend]
+            self.state[fresh] = z[fresh]
+            self.flux[blend] = a * self.flux[blend] + (1 - a) * tot[blend]
+            self.flux[fresh] = tot[fresh]
+        self._state_ok |= good
+        self.light = self.solve(self.state, self._state_ok, self.light)
+        self._acc[:] = 0.0
+        self._count[:] = 0.0
+        self.fits += 1
+        self.version += 1
+        self._refs = None
+
+    def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
+        """Tilt blur of the mean images from their spread across e (where the profile does
+        not reach): the pupil median of the across-e variance, inverted through the
+        pixel-integrated core widened by a blur; the basis is rebuilt when it moves by more
+        than 0.05 px."""
+        if good.sum() < 3:
+            return
+        m = np.maximum(mean[good], 0.0)
+        tot = m.sum(axis=1)
+        u = self._u_perp[good]
+        mu = (m * u).sum(axis=1) / tot
+        var = (m * u * u).sum(axis=1) / tot - mu ** 2
+        blur = float(np.interp(np.median(var), *self._spread_table()))
+        if abs(blur - self.blur_px) > 0.05:
+            self.blur_px = blur
+            self._basis = None
+
+    def _spread_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(variance (S,), blur (S,))``: across-e variance (px^2, about the block centre,
+        pixel centres) of the pixel-integrated core widened by a tilt blur of rms ``blur``
+        px: an under-sampled core is not ``sigma^2 + 1/12``."""
+        if not hasattr(self, "_spread"):
+            from scipy.special import ndtr
+            p = self.sensor.pixels
+            j = np.arange(p) - (p - 1) / 2
+            blur = np.linspace(0.0, 3.0, 301)
+            sig = np.hypot(self.sensor.core_fwhm_px / FWHM_PER_SIGMA, blur)[:, None]
+            g = ndtr((j + 0.5) / sig) - ndtr((j - 0.5) / sig)                # (S, p)
+            var = (g * j ** 2).sum(axis=1) / g.sum(axis=1)
+            self._spread = (var, blur)
+        return self._spread
+
+    def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
+              iterations: int = 3) -> np.ndarray:
+        """Light per node ``(K,)`` from unit-light projected means ``z (n, nb)`` of the
+        subapertures ``ok (n,)``; ``start`` gives the first field fractions."""
+        b = self.basis
+        gram = self._gram
+        bad = ~ok
+        if bad.any():
+            gram = gram - np.einsum("snk,snl->kl", b[bad], b[bad])
+        bo, zo, cs = b[ok], z[ok], self._colsum[ok]
+        lam = self.smoothing * np.trace(gram) / gram.shape[0]
+        chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(len(gram)),
+                             lower=True)
+        low = np.tril(chol)
+        x = self.prior if start is None else start
+        for _ in range(iterations):
+            c = cs @ x / max(x.sum(), 1e-300)                         # light inside the field
+            rhs = np.einsum("snk,sn->k", bo, zo * c[:, None])
+            x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * len(rhs))
+            if x.sum() <= 0:
+                return self.prior.copy()
+        return x / x.sum()
+
+    # -- what the profile implies -------------------------------------------------------
+    @property
+    def profile(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(altitude_m (K+2,), density (K+2,))`` of the current estimate (unit light)."""
+        return node_density(self.nodes_m, self.light)
+
+    def spots(self) -> ProfileSpots:
+        """Noise-free spots of the current profile for every subaperture (cached)."""
+        if self._refs is None or self._refs[0] != self.version:
+            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
+                              self.light, self.max_shift_px)
+            self._refs = (self.version, ps, None)
+        return self._refs[1]
+
+    def reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(image, d/dx, d/dy)``, each ``(n, p, p)``, unit light at zero shift, block axes."""
+        spots = self.spots()
+        if self._refs[2] is None:
+            self._refs = (self._refs[0], spots, spots.reference())
+        return self._refs[2]
+
+    def cog_bias(self) -> np.ndarray:
+        """``(n, 2)`` CoG of each reference, px, block axes: a plain CoG's reading of a spot
+        at the true centre, to subtract."""
+        img = self.reference()[0]
+        p = self.sensor.pixels
+        c = (p - 1) / 2
+        flat = img.reshape(self.n, -1)
+        y, x = np.indices((p, p), dtype=float)
+        tot = flat.sum(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = np.stack([flat @ (x.ravel() - c), flat @ (y.ravel() - c)], axis=1) / tot[:, None]
+        return np.where(np.isfinite(out), out, 0.0)
+
+    def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(image, d/dx, d/dy, flux)``: the reference in counts (the observed mean flux of
+        each subaperture, ``sensor.photons`` before the first fit), background not included;
+        ``flux (n,)``."""
+        img, dx, dy = self.reference()
+        flux = np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
+        tot = img.reshape(self.n, -1).sum(axis=1)
+        scale = (flux / np.where(tot > 0, tot, 1.0))[:, None, None]   # unit light in the field
+        return img * scale, dx * scale, dy * scale, flux
+
+    def image_at(self, shift_block: np.ndarray) -> np.ndarray:
+        """``(n, p, p)`` noise-free counts of the current reference displaced by
+        ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
+        img0 = self.reference()[0]
+        flux = np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
+        tot = img0.reshape(self.n, -1).sum(axis=1)
+        return self.spots().image_at(shift_block) * (flux / np.where(tot > 0, tot, 1.0))[:, None, None]
+
+    def describe(self) -> dict:
+        h, d = self.profile
+        return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
+                "tilt_blur_px": round(self.blur_px, 3),
+                "time_constant_s": self.time_constant_s, "stride": self.stride,
+                "nodes": int(self.nodes_m.size),
+                "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
+
+
+# Options every estimator that uses the calibration takes (names as in options.py).
+OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1}
+
+
+def from_options(sensor, options: dict, background: float) -> PupilCalibration:
+    """The calibration an estimator's ``pupil_*`` options describe."""
+    o = {**OPTION_DEFAULTS, **{k: v for k, v in options.items() if k in OPTION_DEFAULTS}}
+    return PupilCalibration(sensor, period=o["pupil_period"],
+                            time_constant_s=o["pupil_time_constant_s"], stride=o["pupil_stride"],
+                            background=background)
+
+
+__all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]

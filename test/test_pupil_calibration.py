@@ -1,0 +1,239 @@
+"""Pupil calibration: the profile from the whole pupil, the estimators that use it, replay."""
+
+import numpy as np
+import pytest
+
+from lgs_wfs_ros.centroiding import options as table
+from lgs_wfs_ros.centroiding import pupil as pupil_cal
+from lgs_wfs_ros.centroiding.pupil import PupilCalibration
+from lgs_wfs_ros.optics import geometry, sodium
+from lgs_wfs_ros.optics.model_spot import Projection, shift_to_detector
+from lgs_wfs_ros.optics.spots import SpotModel
+from lgs_wfs_ros.sensor import Sensor
+
+# a 30 x 30 pupil of 1 m subapertures: the full pupil's radii (to 15 m) at a quarter the cost
+SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0)
+
+
+def true_spots(sensor, family, seed=2):
+    lay = geometry.layout(sensor)
+    h, d = sodium.unseen_profiles(family, 1, 700.0, seed=seed)
+    return h, d[0], SpotModel(sensor, lay.r_m, lay.e, h, d[0], max_shift_px=3.5)
+
+
+def core_altitude(h, d, frac=0.05):
+    """Harmonic altitude of the part of a profile above ``frac`` of its peak (the faint
+    lidar floor far from the layer falls outside every field: no pupil can see it)."""
+    return sodium.harmonic_altitude(h, np.where(d > frac * d.max(), d, 0.0))
+
+
+def cog_block(img):
+    """``(n, 2)`` CoG of unit images, block pixel axes."""
+    p = img.shape[-1]
+    y, x = np.indices((p, p), dtype=float)
+    flat = img.reshape(img.shape[0], -1)
+    return np.stack([flat @ (x.ravel() - (p - 1) / 2), flat @ (y.ravel() - (p - 1) / 2)], 1) \
+        / flat.sum(1)[:, None]
+
+
+@pytest.mark.parametrize("detector,launch,zenith,family", [
+    ("polar", 0.0, 0.0, "narrow"), ("cartesian", 16.0, 30.0, "measured"),
+    ("polar", 16.0, 0.0, "sporadic"), ("polar", 0.0, 0.0, "high")])
+def test_noise_free_pupil_gives_profile_origin_and_bias(detector, launch, zenith, family):
+    """One noise-free frame at zero tilt: the fitted profile has the true harmonic altitude
+    (the origin) and width, and the CoG bias it implies is the true one to 1e-3 px, whatever
+    the launch, zenith angle and truncation."""
+    s = SMALL.replace(detector=detector, launch_xy_m=(launch, 0.0), zenith_deg=zenith)
+    h, d, sm = true_spots(s, family)
+    n = geometry.layout(s).n_valid
+    img, trunc = sm.images(np.zeros((n, 2)))
+    cal = PupilCalibration(s, period=1)
+    assert cal.observe(img.reshape(n, -1) * 1000.0)
+    he, de = cal.profile
+    assert abs(core_altitude(he, de) - core_altitude(h, d)) < 40.0
+    fw = sodium.fwhm(h, d)                  # nodes are ~450 m apart near 90 km
+    assert abs(sodium.fwhm(he, de) - fw) < max(0.25 * fw, 300.0)
+    true_bias = cog_block(img)
+    assert np.abs(true_bias).max() > 0.1                       # a bias to remove
+    assert np.abs(cal.cog_bias() - true_bias).max() < 0.01
+    # the prior alone (no calibration) is off: the test can fail
+    assert np.abs(PupilCalibration(s).cog_bias() - true_bias).max() > 0.03
+
+
+def test_noisy_tilted_frames_converge_and_follow_the_average():
+    """AR(1) tilts (0.46 px rms, independent) and 1000 photons: 280 frames remove 90 % of the
+    CoG bias of a layer far above h_ref."""
+    s = SMALL.replace(detector="polar")
+    h, d, sm = true_spots(s, "high")
+    n = geometry.layout(s).n_valid
+    rng = np.random.default_rng(1)
+    cal = PupilCalibration(s, period=70, time_constant_s=0.5)
+    t = rng.normal(0, 0.46, (n, 2))
+    for _ in range(280):
+        t = 0.95 * t + np.sqrt(1 - 0.95 ** 2) * rng.normal(0, 0.46, (n, 2))
+        img, _ = sm.images(np.clip(t, -3.4, 3.4))
+        img /= img.reshape(n, -1).sum(1)[:, None, None]
+        cal.observe(rng.poisson(img * 1000.0).reshape(n, -1).astype(np.float32))
+    assert cal.fits == 4
+    img0, _ = sm.images(np.zeros((n, 2)))
+    true_bias = cog_block(img0)
+    resid = cal.cog_bias() - true_bias
+    assert np.sqrt(np.mean(resid ** 2)) < 0.1 * np.sqrt(np.mean(true_bias ** 2))
+    he, de = cal.profile
+    # the layer sits 14 km above h_ref, truncated in the outer subapertures: its altitude
+    # comes out within 5 % of that offset
+    off = core_altitude(h, d) - s.h_ref_m
+    assert off > 10e3 and abs(core_altitude(he, de) - core_altitude(h, d)) < 0.05 * off
+    # reset forgets it all
+    cal.reset()
+    assert cal.fits == 0 and np.allclose(cal.light, cal.prior)
+
+
+def test_projection_is_linear_and_keeps_light():
+    s = SMALL.replace(detector="cartesian")
+    lay = geometry.layout(s)
+    proj = Projection(s, lay.e)
+    rng = np.random.default_rng(0)
+    a, b = rng.random((2, lay.n_valid, 256))
+    np.testing.assert_allclose(proj(a + 2 * b), proj(a) + 2 * proj(b))
+    np.testing.assert_allclose(proj(a).sum(-1), a.sum(-1))
+    polar = Projection(s.replace(detector="polar"), np.tile([1.0, 0.0], (lay.n_valid, 1)))
+    cols = a.reshape(-1, 16, 16).sum(1)
+    p = polar(a)
+    np.testing.assert_allclose(p[:, 3:19], cols)              # polar bins are the columns
+
+
+def _run(sensor, cents, sm, frames, rng, warm):
+    n = geometry.layout(sensor).n_valid
+    errs = {k: [] for k in cents}
+    t = rng.normal(0, 0.46, (n, 2))
+    for k in range(frames):
+        t = 0.95 * t + np.sqrt(1 - 0.95 ** 2) * rng.normal(0, 0.46, (n, 2))
+        tt = np.clip(t, -3.4, 3.4)
+        img, _ = sm.images(tt)
+        img /= img.reshape(n, -1).sum(1)[:, None, None]
+        counts = rng.poisson(img * sensor.photons).astype(np.float32)
+        for name, c in cents.items():
+            est = c.centroid(counts)
+            if k >= warm:
+                errs[name].append(est - tt)
+    return {k: np.array(v) for k, v in errs.items()}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("detector,launch", [("polar", 0.0), ("cartesian", 16.0)])
+def test_calibrated_estimators_are_unbiased_on_a_held_out_family(detector, launch):
+    """On the 'broad' family (a layer twice as thick as any training profile) the plain CoG
+    and the CMF with a model reference are biased; the pupil-calibrated CoG and the default
+    CMF (pupil reference) remove at least 80 % of that bias, and are more accurate."""
+    s = SMALL.replace(detector=detector, launch_xy_m=(launch, 0.0), photons=1000.0)
+    _, _, sm = true_spots(s, "broad")
+    cents = {"cog": table.build("cog", s), "cog_pupil": table.build("cog", s, {"bias": "pupil",
+                                                                                "pupil_period": 70}),
+             "cmf_model": table.build("cmf", s, {"reference": "model"}),
+             "cmf": table.build("cmf", s, {"pupil_period": 70})}
+    errs = _run(s, cents, sm, 280, np.random.default_rng(3), warm=140)
+    # a CoG's gain drops where the field cuts the spot (its mean error then follows the mean
+    # tilt, which no bias removes): score the subapertures that keep 95 % of their light
+    n = geometry.layout(s).n_valid
+    keep = sm.images(np.zeros((n, 2)))[1] < 0.05
+    assert keep.sum() > 100
+    bias = {k: np.sqrt(np.mean(np.nanmean(e[:, keep], axis=0) ** 2)) for k, e in errs.items()}
+    mean2d = {k: np.nanmean(np.hypot(e[..., 0], e[..., 1])) for k, e in errs.items()}
+    assert bias["cog"] > 0.1 and bias["cmf_model"] > 0.1
+    assert bias["cog_pupil"] < 0.2 * bias["cog"]
+    assert bias["cmf"] < 0.2 * bias["cmf_model"]
+    assert mean2d["cog_pupil"] < 0.8 * mean2d["cog"] and mean2d["cmf"] < 0.8 * mean2d["cmf_model"]
+    assert cents["cmf"].describe()["pupil_calibration"]["fits"] == 4
+
+
+def test_pupil_reference_installs_exact_derivatives_and_follows_refits():
+    s = SMALL.replace(detector="polar")
+    c = table.build("cmf", s, {"pupil_period": 2})
+    assert c.options["reference"] == "pupil" and c.weighting == "model" and c.linearize
+    img, dx, dy, flux = c.pupil.counts()
+    np.testing.assert_allclose(c.ref.images, img + c.background)
+    np.testing.assert_allclose(c.ref.derivatives[0], dx)
+    h = 1e-3
+    n = c.n
+    ex = np.tile([h, 0.0], (n, 1))
+    num = (c.pupil.image_at(ex) - c.pupil.image_at(-ex)) / (2 * h)
+    np.testing.assert_allclose(num, dx, atol=1e-3 * np.abs(dx).max())
+    v0 = c.ref.version
+    _, _, sm = true_spots(s, "narrow")
+    frame = sm.images(np.zeros((n, 2)))[0] * 1000.0
+    c.centroid(frame)
+    assert c.ref.version == v0
+    c.centroid(frame)                                          # frame 2: a refit
+    assert c.ref.version > v0 and c.pupil.fits == 1
+    # the refit reference is the narrow profile's spot: the CMF reads ~0 on its own image
+    np.testing.assert_allclose(c.centroid(c.pupil.image_at(np.zeros((n, 2))) + c.background),
+                               0.0, atol=2e-3)
+
+
+def test_options_table_offers_the_pupil_and_every_row_has_a_help():
+    for alg in ("cmf", "corr"):
+        assert table.option(alg, "reference").default == "pupil"
+    assert table.option("cog", "bias").choices == ("none", "pupil")
+    for alg in ("cog", "cmf", "corr"):
+        for k, v in pupil_cal.OPTION_DEFAULTS.items():
+            assert table.option(alg, k).default == v
+    with pytest.raises(ValueError, match="bias"):
+        table.build("cog", SMALL, {"bias": "profile"})
+
+
+def test_replay_uses_the_options_recorded_in_the_bag(tmp_path, monkeypatch):
+    """A bag recorded with non-default options (pupil_period 3) replays to the same slopes
+    without being told them; given --options it runs those instead."""
+    from lgs_wfs_ros.analysis import bagdata
+    from lgs_wfs_ros.analysis.replay import replay_bag
+    from lgs_wfs_ros import cli
+
+    path = tmp_path / "live.mcap"
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_period", 3)
+    bagdata.make_sample_bag(path, frames=24, algorithms=("cmf",))
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_period", 140)
+    res = replay_bag(path, ["cmf"], out=tmp_path / "r.mcap", quiet=True)
+    assert res["options"]["cmf"]["source"] == "bag"
+    assert res["options"]["cmf"]["options"]["pupil_period"] == 3
+    segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / "r.mcap").segments}
+    live, replayed = segs["cmf"].slopes.data, segs["cmf_replay"].slopes.data
+    np.testing.assert_allclose(replayed, live, atol=1e-6)
+    assert segs["cmf_replay"].description["options"]["pupil_period"] == 3
+    # the table's defaults (pupil_period 140) give other slopes: the options mattered
+    assert cli.main(["replay", str(path), "--algorithms", "cmf", "--out", str(tmp_path / "d.mcap"),
+                     "--options", '{"cmf": {}}']) == 0
+    segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / "d.mcap").segments}
+    assert np.abs(segs["cmf_replay"].slopes.data - live).max() > 1e-3
+    assert cli.main(["replay", str(path), "--out", str(tmp_path / "e.mcap"),
+                     "--options", "{not json"]) == 2
+
+
+def test_shift_to_detector_rotates_only_on_polar():
+    e = np.array([[0.6, 0.8]])
+    v = np.array([[1.0, 0.0]])
+    np.testing.assert_allclose(shift_to_detector(SMALL.replace(detector="polar"), e, v), e)
+    np.testing.assert_allclose(shift_to_detector(SMALL, e, v), v)
+
+
+def test_frame_row_and_stack_accumulation_agree():
+    """The three ways of feeding frames (integer frame, float32 row buffer, stack) give the
+    same profile."""
+    s = SMALL.replace(detector="polar")
+    lay = geometry.layout(s)
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(4)
+    frames = [geometry.stack_to_frame(rng.poisson(sm.images(rng.normal(0, 0.3, (lay.n_valid, 2)))[0]
+                                                  * 1000).astype(np.uint16), lay) for _ in range(4)]
+    cals = [PupilCalibration(s, period=4) for _ in range(3)]
+    g, p = s.grid, s.pixels
+    valid = np.flatnonzero(lay.valid.ravel())
+    for f in frames:
+        cals[0].observe_frame(f)
+        rows = f.reshape(g, p, g, p).swapaxes(1, 2).reshape(g * g, p * p).astype(np.float32)
+        cals[1].observe_rows(rows, valid)
+        cals[2].observe(geometry.frame_to_stack(f, lay).reshape(lay.n_valid, -1))
+    assert all(c.fits == 1 for c in cals)
+    np.testing.assert_allclose(cals[0].light, cals[2].light, atol=1e-9)
+    np.testing.assert_allclose(cals[1].light, cals[2].light, atol=1e-6)
+    np.testing.assert_allclose(cals[0].flux, cals[2].flux)
