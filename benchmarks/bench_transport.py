@@ -105,7 +105,7 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     # the real-time setting (its paper setting, history reference + image weighting, rebuilds
     # every filter every frame: ~100 ms at full pupil)
     "cog": ("cog", {}),
-    "cmf": ("cmf", {"cmf.weighting": "model", "cmf.reference": "model"}),
+    "cmf": ("cmf", {"cmf.weighting": "model", "cmf.reference": "model", "cmf.linearize": False}),
     "ann": ("ann", {}),
 }
 

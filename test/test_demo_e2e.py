@@ -53,7 +53,7 @@ def test_paper_case_at_700_hz_loses_nothing_and_matches_the_library(tmp_path):
         assert np.array_equal(s_stamps, stamps)
         live = grids[:, lay.valid]
         opts = {"ann": {"model": "ann_1k"},   # what demo.graph_specs configures
-                "cmf": {"reference": "model", "weighting": "model"}}.get(alg, {})
+                "cmf": {"reference": "model", "weighting": "model", "linearize": False}}.get(alg, {})
         lib = make_centroider(alg, sensor, **opts)
         offline = np.stack([lib.centroid(f) for f in images])
         # the same frames give the same slopes live and offline (float32 on the wire)

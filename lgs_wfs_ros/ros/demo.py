@@ -58,10 +58,12 @@ def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, s
         if name == "ann":
             params["ann.model"] = _ann_model(case)
         elif name == "cmf":
-            # What a real system can run at full rate: a reference from the spot model and
-            # model noise weighting. The paper's idealised "history" reference follows the
+            # What a real system can run at full rate: a reference from the spot model,
+            # model noise weighting, no response inversion (linearize costs ~1 ms a frame
+            # more: docs/accuracy.md). The paper's idealised "history" reference follows the
             # moving spot and so reports ~0 under turbulence (docs/reproduction.md).
-            params.update({"cmf.reference": "model", "cmf.weighting": "model"})
+            params.update({"cmf.reference": "model", "cmf.weighting": "model",
+                           "cmf.linearize": False})
         specs.append(NodeSpec("centroider_node", name, params,
                               {"frame": "/wfs/frame", "sensor": "/wfs/sensor",
                                "true_slopes": "/wfs/true_slopes"}))
