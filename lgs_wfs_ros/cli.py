@@ -73,6 +73,12 @@ def _add(sub, name: str, help: str, examples: str) -> argparse.ArgumentParser:
                           formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
+def _out_dir(p: argparse.ArgumentParser, what: str, default: str) -> None:
+    """The ``--out DIR`` option of a verb that writes files."""
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help=f"directory for {what} (default: {default})")
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="lgs-wfs", description="LGS Shack-Hartmann centroiding: simulate, centroid, "
@@ -110,8 +116,7 @@ def parser() -> argparse.ArgumentParser:
              "  lgs-wfs report bags/sample.mcap\n"
              "  lgs-wfs report bags/sample.mcap --out report/   # + PNGs and summary.json\n")
     p.add_argument("bag", help="an MCAP bag with frames or slopes and true_slopes")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="directory for PNGs and summary.json (default: print the tables only)")
+    _out_dir(p, "PNGs and summary.json", "print the tables only")
     p.add_argument("--json", action="store_true", help="print the JSON summary alone")
     p.set_defaults(func=_report)
 
@@ -142,8 +147,7 @@ def parser() -> argparse.ArgumentParser:
              "  lgs-wfs reproduce --quick --out /tmp/repro\n"
              "  lgs-wfs reproduce --update-docs            # regenerate docs/reproduction.md\n")
     p.add_argument("--quick", action="store_true", help="fewer frames and a shorter validation run")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="directory for reproduction.md/.json and figures/ (default: a new temporary one)")
+    _out_dir(p, "reproduction.md/.json and figures/", "a new temporary one")
     p.add_argument("--update-docs", action="store_true",
                    help="write into the checkout's docs/ instead (the tracked report)")
     p.add_argument("--allow-fail", action="store_true",
@@ -154,8 +158,7 @@ def parser() -> argparse.ArgumentParser:
              "  lgs-wfs train ann_1k --quick --out /tmp/models\n"
              "  lgs-wfs train ann_1k --out models --force    # replace the shipped model\n")
     p.add_argument("name", help="a shipped model's name (its recipe), e.g. ann_1k")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="directory for NAME.onnx and its README.md card (default: a new temporary one)")
+    _out_dir(p, "NAME.onnx and its README.md card", "a new temporary one")
     p.add_argument("--force", action="store_true", help="replace an existing --out/NAME.onnx")
     p.add_argument("--samples", type=int, default=None, help="training samples (default: the recipe's)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the recipe's)")

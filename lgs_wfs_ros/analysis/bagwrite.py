@@ -13,12 +13,13 @@ from ..bags import subapertures as subaps
 from ..bags.portable import portable
 from ..bags.reader import IMAGE, STRING
 from ..sensor import Sensor
+from ..bags.closing import Closing
 
 TRANSIENT = {"reliability": "reliable", "durability": "transient_local", "history": "keep_last", "depth": 1}
 VOLATILE = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
 
 
-class ContractBagWriter:
+class ContractBagWriter(Closing):
     """Write a bag in the contract's layout from numpy arrays (no ROS).
 
     ``wfs`` is the namespace of frame / true_slopes / sensor. Slopes and truths are given
@@ -87,12 +88,6 @@ class ContractBagWriter:
     def close(self) -> None:
         self.w.close()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
 
 def _log(stamp_ns, log_ns):

@@ -32,6 +32,7 @@ from mcap.exceptions import McapError
 from . import mcapfmt as fmt
 from .cdr import decode_image, decode_string
 from .errors import BagError
+from .closing import Closing
 
 IMAGE = "sensor_msgs/msg/Image"
 STRING = "std_msgs/msg/String"
@@ -199,7 +200,7 @@ def bag_file(directory) -> Path:
                    + ", ".join(p.name for p in found))
 
 
-class BagReader:
+class BagReader(Closing):
     """Read an MCAP bag. path: the .mcap file, or a rosbag2 directory holding one
     (:func:`bag_file`); strict: see module doc.
 
@@ -609,10 +610,3 @@ class BagReader:
                 pass
             self._mm = None
         self._f.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False

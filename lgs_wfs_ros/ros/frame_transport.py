@@ -34,3 +34,24 @@ def make_outlet(node, frame_pub, sensor) -> frames.FrameOutlet:
             p["frame_lockstep"])
     except shm.ShmUnavailable as exc:
         raise ValueError(str(exc)) from exc
+
+
+class FrameSource:
+    """Mixin of the frame-source nodes (simulator, player): a frame thread ``_thread`` that
+    watches ``_stop``, and an outlet ``_outlet``; stopped in that order before the node is
+    destroyed. :meth:`_wake` rouses a thread waiting on something else than ``_stop``."""
+
+    stop_timeout_s = 10.0
+
+    def _wake(self) -> None:
+        """Nothing to rouse by default."""
+
+    def stop(self):
+        self._stop.set()
+        self._wake()
+        self._thread.join(timeout=self.stop_timeout_s)
+        self._outlet.close()
+
+    def destroy_node(self):
+        self.stop()                          # the frame thread and its shared memory first
+        return super().destroy_node()

@@ -24,7 +24,7 @@ from std_msgs.msg import String
 from .. import bags
 from ..sensor import Sensor, SensorError
 from ..transport import shm
-from .frame_transport import declare_frame_transport, make_outlet
+from .frame_transport import FrameSource, declare_frame_transport, make_outlet
 from .spinning import run_node
 from . import health, parameters, qos
 
@@ -55,7 +55,7 @@ def restamp(cdr, shift_ns: int) -> bytes:
     return b"".join((mv[:4], struct.pack("<iI", sec, nanosec), mv[12:]))
 
 
-class PlayerNode(Node):
+class PlayerNode(FrameSource, Node):
     def __init__(self, **kwargs):
         kwargs.setdefault("namespace", "wfs")
         super().__init__("player_node", **kwargs)
@@ -246,16 +246,9 @@ class PlayerNode(Node):
         if keep:
             self._cache = cache
 
-    def stop(self):
-        self._stop.set()
-        with self._answer:
+    def _wake(self):
+        with self._answer:                   # a play thread waiting for answers
             self._answer.notify_all()
-        self._thread.join(timeout=5)
-        self._outlet.close()
-
-    def destroy_node(self):
-        self.stop()                          # the frame thread and its shared memory first
-        return super().destroy_node()
 
 
 def _finish(node) -> None:

@@ -31,7 +31,7 @@ from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
 from ..transport import shm
-from .frame_transport import declare_frame_transport, make_outlet
+from .frame_transport import FrameSource, declare_frame_transport, make_outlet
 from .spinning import run_node
 from . import health, parameters, qos
 
@@ -66,7 +66,7 @@ BATCH_FRAMES = 32            # frames rendered together for a small sensor
 BATCH_SUBAPERTURES = 1024    # ... as long as they hold at most this many spots
 
 
-class SimulatorNode(Node):
+class SimulatorNode(FrameSource, Node):
     def __init__(self, **kwargs):
         kwargs.setdefault("namespace", "wfs")
         super().__init__("simulator_node", **kwargs)
@@ -265,14 +265,6 @@ class SimulatorNode(Node):
         buf = outlet.loan(sim.sensor.frame_shape, sim.sensor.dtype)
         return [(sim.next(out=buf.image), buf)]
 
-    def stop(self):
-        self._stop.set()
-        self._thread.join(timeout=10)
-        self._outlet.close()
-
-    def destroy_node(self):
-        self.stop()                          # the frame thread and its shared memory first
-        return super().destroy_node()
 
 
 def _published(node) -> bool:

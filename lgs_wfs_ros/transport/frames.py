@@ -129,14 +129,6 @@ class FrameInlet:
         self._thread = threading.Thread(target=self._run, name="frame-inlet", daemon=True)
         self._thread.start()
 
-    @property
-    def lost(self) -> int:
-        return self._sub.lost
-
-    @property
-    def received(self) -> int:
-        return self._sub.received
-
     def _run(self):
         while not self._stop.is_set():
             if not self._sub.wait(0.1):
