@@ -111,7 +111,7 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     # the real-time setting (its paper setting, history reference + image weighting, rebuilds
     # every filter every frame: ~100 ms at full pupil)
     "cog": ("cog", {}),
-    "cmf": ("cmf", {"options": json.dumps({"weighting": "model", "reference": "model"})}),
+    "cmf": ("cmf", {"cmf.weighting": "model", "cmf.reference": "model"}),
     "ann": ("ann", {}),
 }
 
@@ -310,7 +310,7 @@ def stage_rows(sensor: Sensor, label: str, tmp: Path, quick: bool) -> list[dict]
     image = bags.decode_image(cdr)[3]
     slopes = None
     for name, (alg, params) in ALGORITHMS.items():
-        opts = json.loads(params.get("options", "{}"))
+        opts = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith(alg + ".")}
         if alg == "ann":
             opts["model"] = ann_model(sensor, tmp)
         c = make_centroider(alg, sensor, **opts)
@@ -377,7 +377,7 @@ def run(quick: bool = False) -> list[dict]:
             rows += sink_rows(f"{label} @{rate} Hz", run_sink(bag, rate, seconds), float(rate))
             for name, (alg, params) in ALGORITHMS.items():
                 if alg == "ann":
-                    params = {"model": ann_model(sensor, tmp)}
+                    params = {"ann.model": ann_model(sensor, tmp)}
                 r = run_pipeline(bag, sensor, alg, params, rate, seconds)
                 rows += pipeline_rows(f"{label} {name} @{rate} Hz", r, target, rate)
                 # flow control: the player keeps `window` frames in flight (rate 'max'), so

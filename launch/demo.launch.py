@@ -2,7 +2,10 @@
 
     ros2 launch lgs_wfs_ros demo.launch.py [frames:=2000] [output:=bags/demo.mcap]
 
-Each centroider runs in its own namespace (/cog, /cmf, /ann) reading the simulator's /wfs topics.
+Each centroider runs in its own namespace (/cog, /cmf, /ann) reading the simulator's /wfs topics
+(frame, sensor, and true_slopes for its slope_error series). Every node publishes its state
+on /diagnostics. Open config/foxglove_layout.json in Foxglove (with foxglove_bridge, or on
+the recorded bag) to see the frame, the slopes pictures and the error series together.
 """
 
 import os
@@ -39,5 +42,6 @@ def generate_launch_description():
         actions.append(Node(
             package="lgs_wfs_ros", executable="centroider_node", namespace=name,
             parameters=[params, {"algorithm": name}],
-            remappings=[("frame", "/wfs/frame"), ("sensor", "/wfs/sensor")]))
+            remappings=[("frame", "/wfs/frame"), ("sensor", "/wfs/sensor"),
+                        ("true_slopes", "/wfs/true_slopes")]))
     return LaunchDescription(actions)

@@ -48,51 +48,81 @@ def _replay(args):
 
 def _reproduce(args):
     from .analysis.reproduce import reproduce
-    return reproduce(quick=args.quick, out_dir=args.out)
+    return reproduce(quick=args.quick, out_dir=args.out, update_docs=args.update_docs,
+                     allow_fail=args.allow_fail)
 
 
 def _train(args):
-    from .learning.train import train_model
-    train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
-                quick=args.quick)
+    from .extras import MissingExtra
+    from .learning import train_model
+    try:
+        train_model(args.name, out_dir=args.out, samples=args.samples, seed=args.seed,
+                    quick=args.quick, force=args.force)
+    except MissingExtra as exc:
+        print(f"lgs-wfs train: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
 def _recover(args):
-    from .bags import recover
-    stats = recover(args.src, args.dst)
-    print(f"recovered {stats}")
-    return 0
+    from .bags import recover_command
+    return recover_command(args.src, args.dst, overwrite=args.overwrite)
+
+
+def _add(sub, name: str, help: str, examples: str) -> argparse.ArgumentParser:
+    """A subcommand whose --help ends with its examples."""
+    return sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".",
+                          epilog="examples:\n" + examples,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="lgs-wfs", description="LGS Shack-Hartmann centroiding: "
-                                 "simulate, centroid, record, analyse.")
-    sub = ap.add_subparsers(dest="verb", required=True)
+    ap = argparse.ArgumentParser(
+        prog="lgs-wfs", description="LGS Shack-Hartmann centroiding: simulate, centroid, "
+        "record, analyse.", formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n  lgs-wfs demo\n  lgs-wfs inspect bags/sample.mcap\n"
+               "  lgs-wfs report bags/sample.mcap --out report/\n"
+               "'lgs-wfs <command> --help' explains each command's options.")
+    sub = ap.add_subparsers(dest="verb", required=True, metavar="command")
 
-    p = sub.add_parser("demo", help="run simulator + centroiders + recorder, print the error table")
-    p.add_argument("--out-dir", default="bags")
+    p = _add(sub, "demo", "run simulator + centroiders + recorder as ROS 2 node processes, "
+             "then print the error table of each bag",
+             "  lgs-wfs demo                                  # both runs, bags under bags/\n"
+             "  lgs-wfs demo --frames 300 --full-frames 0 --algorithms cog,cmf   # quick\n")
+    p.add_argument("--out-dir", default="bags", metavar="DIR",
+                   help="directory for the bags and their node logs (default: %(default)s)")
     p.add_argument("--frames", type=int, default=2100,
-                   help="frames of the paper's single-subaperture case at 700 Hz")
-    p.add_argument("--full-frames", type=int, default=100, help="full-pupil frames")
-    p.add_argument("--full-rate", type=float, default=0.0,
-                   help="full-pupil frame rate in Hz (0: the highest measured to hold)")
-    p.add_argument("--algorithms", default="cog,cmf,ann")
+                   help="frames of the paper's single-subaperture case at 700 Hz "
+                        "(0: skip that run; default: %(default)s)")
+    p.add_argument("--full-frames", type=int, default=100,
+                   help="frames of the full 60 x 60 pupil run (0: skip it; default: %(default)s)")
+    p.add_argument("--full-rate", type=float, default=0.0, metavar="HZ",
+                   help="full-pupil frame rate in Hz (0: the highest measured to hold here)")
+    p.add_argument("--algorithms", default="cog,cmf,ann", metavar="A,B,...",
+                   help="centroiders run side by side, comma-separated, from cog, tcog, wcog, "
+                        "cmf, corr, ann (default: %(default)s)")
     p.set_defaults(func=_demo)
 
-    p = sub.add_parser("inspect", help="topics, counts, rates, sensor and centroider changes of a bag")
-    p.add_argument("bag")
-    p.add_argument("--json", action="store_true")
+    p = _add(sub, "inspect", "topics, counts, rates, sensor and centroider changes of a bag",
+             "  lgs-wfs inspect bags/sample.mcap\n  lgs-wfs inspect bags/sample.mcap --json\n")
+    p.add_argument("bag", help="an MCAP bag (any recorder)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=_inspect)
 
-    p = sub.add_parser("report", help="per-algorithm errors, CRB, plots and a JSON summary of a bag")
-    p.add_argument("bag")
-    p.add_argument("--out", default=None, help="directory for PNGs and summary.json")
+    p = _add(sub, "report", "per-algorithm errors, CRB, plots and a JSON summary of a bag",
+             "  lgs-wfs report bags/sample.mcap\n"
+             "  lgs-wfs report bags/sample.mcap --out report/   # + PNGs and summary.json\n")
+    p.add_argument("bag", help="an MCAP bag with frames or slopes and true_slopes")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="directory for PNGs and summary.json (default: print the tables only)")
     p.add_argument("--json", action="store_true", help="print the JSON summary alone")
     p.set_defaults(func=_report)
 
-    p = sub.add_parser("replay", help="run centroiders over a bag's frames into a new bag (no ROS); "
-                       "each uses the options recorded in the bag for its algorithm unless --options")
+    p = _add(sub, "replay", "run centroiders over a bag's frames into a new bag (no ROS); each "
+             "uses the options recorded in the bag for its algorithm unless --options",
+             "  lgs-wfs replay bags/sample.mcap --algorithms cog,cmf --out replayed.mcap\n"
+             "  lgs-wfs replay bags/sample.mcap --algorithms ann --models ann_pupil,ann_1k\n"
+             "  lgs-wfs replay bags/sample.mcap --algorithms cmf --options '{\"cmf\": {\"reference\": \"model\"}}'\n")
     p.add_argument("bag", help="input MCAP bag with frame and sensor topics, e.g. bags/full.mcap")
     p.add_argument("--algorithms", default="cog,cmf,ann",
                    help="comma-separated centroiders, e.g. cog,cmf,corr,ann (default cog,cmf,ann)")
@@ -110,22 +140,36 @@ def parser() -> argparse.ArgumentParser:
                         "'{\"cmf\": {\"reference\": \"history\"}, \"cog\": {\"bias\": \"pupil\"}}'")
     p.set_defaults(func=_replay)
 
-    p = sub.add_parser("reproduce", help="the paper's figures and tables with our code")
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--out", default="docs")
+    p = _add(sub, "reproduce", "the paper's figures and tables with our code",
+             "  lgs-wfs reproduce --quick                  # into a new temporary directory\n"
+             "  lgs-wfs reproduce --quick --out /tmp/repro\n"
+             "  lgs-wfs reproduce --update-docs            # regenerate docs/reproduction.md\n")
+    p.add_argument("--quick", action="store_true", help="fewer frames and a shorter validation run")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="directory for reproduction.md/.json and figures/ (default: a new temporary one)")
+    p.add_argument("--update-docs", action="store_true",
+                   help="write into the checkout's docs/ instead (the tracked report)")
+    p.add_argument("--allow-fail", action="store_true",
+                   help="exit 0 even when a check fails (default: exit 1)")
     p.set_defaults(func=_reproduce)
 
-    p = sub.add_parser("train", help="retrain a shipped model from scratch (needs .[train])")
-    p.add_argument("name")
-    p.add_argument("--out", default="models")
-    p.add_argument("--samples", type=int, default=None)
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--quick", action="store_true")
+    p = _add(sub, "train", "retrain a model from scratch (needs the 'train' extra)",
+             "  lgs-wfs train ann_1k --quick --out /tmp/models\n"
+             "  lgs-wfs train ann_1k --out models --force    # replace the shipped model\n")
+    p.add_argument("name", help="a shipped model's name (its recipe), e.g. ann_1k")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="directory for NAME.onnx and its README.md card (default: a new temporary one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out/NAME.onnx")
+    p.add_argument("--samples", type=int, default=None, help="training samples (default: the recipe's)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: the recipe's)")
+    p.add_argument("--quick", action="store_true", help="a small quick run, for tests")
     p.set_defaults(func=_train)
 
-    p = sub.add_parser("recover", help="copy every readable message of a damaged bag to a new bag")
-    p.add_argument("src")
-    p.add_argument("dst")
+    p = _add(sub, "recover", "copy every readable message of a damaged bag to a new bag",
+             "  lgs-wfs recover damaged.mcap fixed.mcap\n")
+    p.add_argument("src", help="the damaged (e.g. cut-off) MCAP bag")
+    p.add_argument("dst", help="the bag to write")
+    p.add_argument("--overwrite", action="store_true", help="replace dst if it exists")
     p.set_defaults(func=_recover)
     return ap
 

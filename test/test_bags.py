@@ -356,6 +356,36 @@ def test_truncated_bag_reads_to_last_complete_chunk_and_recovers(tmp_path):
             np.testing.assert_array_equal(arr, _frames(30)[:len(st)])
 
 
+def test_both_recover_commands_are_one(tmp_path, capsys):
+    """`lgs-wfs recover` and `python -m lgs_wfs_ros.bags recover` print the same statistics
+    and exit alike: 0 intact source, 1 cut source, 2 refused (not MCAP, output exists)."""
+    from lgs_wfs_ros import cli
+    from lgs_wfs_ros.bags.__main__ import main as bags_main
+    p = tmp_path / "b.mcap"
+    _write_bag(p, n=30)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(p.read_bytes()[:_chunk_ends(p)[2][0] + 5])
+    (tmp_path / "text.mcap").write_text("not a bag\n" * 10)
+    for src, code in ((p, 0), (cut, 1), (tmp_path / "text.mcap", 2)):
+        outs = []
+        for k, run in enumerate((cli.main, bags_main)):
+            dst = tmp_path / f"rec_{src.stem}_{k}.mcap"
+            assert run(["recover", str(src), str(dst)]) == code, (src, run)
+            out, err = capsys.readouterr()
+            if code == 2:
+                assert not dst.exists() and "not an MCAP" in err and "Traceback" not in err
+                continue
+            outs.append(json.loads(out))
+            with BagReader(dst) as r:
+                assert r.complete and sum(n for _, n in r.topics().values()) == outs[-1]["messages"]
+            assert run(["recover", str(src), str(dst)]) == 2                 # dst exists
+            assert "exists" in capsys.readouterr().err
+            assert run(["recover", str(src), str(dst), "--overwrite"]) == code
+            capsys.readouterr()
+        if outs:
+            assert outs[0] == outs[1] and outs[0]["source_complete"] == (code == 0)
+
+
 def test_sigkill_leaves_readable_chunks(tmp_path):
     p = tmp_path / "killed.mcap"
     script = textwrap.dedent(f"""

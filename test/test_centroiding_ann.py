@@ -159,14 +159,15 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # default name: a clear error when no ann_pupil model is installed anywhere
-    monkeypatch.setenv("LGS_WFS_MODELS", str(tmp_path / "empty"))
-    from lgs_wfs_ros.centroiding.ann import model_dirs
-    if any((d / "ann_pupil.onnx").is_file() for d in model_dirs()):
-        assert resolve_model("ann_pupil").name == "ann_pupil.onnx"
-    else:
-        with pytest.raises(ValueError, match="'ann_pupil' not found"):
-            make_centroider("ann", SENSOR)
+    # the default model (ann_pupil) ships with the package, so it resolves by name ...
+    from lgs_wfs_ros.centroiding import ann
+    assert resolve_model("ann_pupil") == ann.model_dirs()[0] / "ann_pupil.onnx"
+    # ... and where no directory holds it, the error says so (both paths always run)
+    monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
+    with pytest.raises(ValueError, match="'ann_pupil' not found"):
+        make_centroider("ann", SENSOR)
+    with pytest.raises(ValueError, match="'tiny_cog' not found"):
+        resolve_model("tiny_cog")
 
 
 def test_folded_normalisation_equals_plain_path(tmp_path):

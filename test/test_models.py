@@ -5,19 +5,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ort = pytest.importorskip("onnxruntime")
-
-from lgs_wfs_ros.centroiding import make_centroider  # noqa: E402
-from lgs_wfs_ros.learning import dataset, export, recipes, train  # noqa: E402
-from lgs_wfs_ros.sensor import Sensor  # noqa: E402
+from lgs_wfs_ros.centroiding import make_centroider
+from lgs_wfs_ros.learning import dataset, export, recipes, train
+from lgs_wfs_ros.sensor import Sensor
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
-SHIPPED = [n for n in recipes.SHIPPED if (MODELS / f"{n}.onnx").is_file()]
-pytestmark = pytest.mark.skipif(not SHIPPED, reason="no shipped models in models/")
+#: every shipped recipe: a missing model file fails these tests, it never skips them
+SHIPPED = list(recipes.SHIPPED)
 
 
-def test_all_shipped_models_present():
-    assert sorted(SHIPPED) == sorted(recipes.SHIPPED)
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_present(name):
+    assert (MODELS / f"{name}.onnx").is_file(), f"models/{name}.onnx is missing"
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -72,10 +71,16 @@ def test_centroider_runs_model_on_its_sensor(name):
     assert err < 0.3
 
 
-def test_readme_lists_every_shipped_model():
-    text = (MODELS / "README.md").read_text()
-    for name in SHIPPED:
-        assert name in text
+@pytest.mark.parametrize("where", [MODELS, MODELS / "paper_prior"])
+def test_readme_is_the_card_generated_from_the_metadata(where):
+    """models/README.md (and paper_prior/) is exactly what ``card.render`` writes from the
+    files' metadata: a hand edit, or a model retrained without its card, fails here."""
+    from lgs_wfs_ros.learning import card
+    text = (where / "README.md").read_text()
+    assert text == card.render(where)
+    for name in card.model_names(where):
+        tr = export.read_metadata(where / f"{name}.onnx")["lgs_wfs.training"]
+        assert f"| {tr['check']['mean_err_px']:.4f} |" in text and tr["recipe_line"] in text
 
 
 def _full_pupil_samples(det):
@@ -90,7 +95,6 @@ def _full_pupil_samples(det):
     return s, lay, smp, truth
 
 
-@pytest.mark.skipif(not (MODELS / "ann_pupil.onnx").is_file(), reason="no ann_pupil")
 @pytest.mark.parametrize("det", ["polar", "cartesian"])
 def test_ann_pupil_full_pupil_beats_cog(det):
     """One frame of the whole pupil (2,784 subapertures), conditioning in pixel axes."""
@@ -104,7 +108,6 @@ def test_ann_pupil_full_pupil_beats_cog(det):
     assert err < 0.85 * cog
 
 
-@pytest.mark.skipif(not (MODELS / "ann_pupil.onnx").is_file(), reason="no ann_pupil")
 def test_ann_centroider_with_ann_pupil_on_full_polar_pupil():
     s, lay, smp, truth = _full_pupil_samples("polar")
     c = make_centroider("ann", s, model="ann_pupil")
@@ -112,7 +115,6 @@ def test_ann_centroider_with_ann_pupil_on_full_polar_pupil():
     assert err < 0.1
 
 
-@pytest.mark.skipif(not (MODELS / "ann_noiseless.onnx").is_file(), reason="no ann_noiseless")
 def test_ann_noiseless_is_noise_free_and_beats_cog_on_measured_profiles():
     """Issue #5: trained on noise-free images only (noise as a known variance), and its
     recorded validation (4,000 frames) beats CoG on the held-out measured profiles at 316
@@ -134,11 +136,10 @@ def test_ann_noiseless_is_noise_free_and_beats_cog_on_measured_profiles():
     assert ann["mean_err_px"] < 0.9 * cog["mean_err_px"]
 
 
-@pytest.mark.skipif(not (MODELS / "ann_pupil.onnx").is_file(), reason="no ann_pupil")
 def test_ann_pupil_ring_criterion_recorded_and_reproduced():
     """Issue 5: on the outer, middle and inner rings of both detectors ann_pupil's mean error
     is within 1.1x that of a network trained for that one subaperture (recorded by
-    ``validate.finalize`` against the ``ref_*`` networks, 20,000 samples per ring); its own
+    ``lgs-wfs train ann_pupil`` (``train.record_validation``) against the ``ref_*`` networks, 20,000 samples per ring); its own
     recorded ring errors are reproduced on fresh samples (2,000 per ring, another seed:
     ~1.5 % standard error)."""
     from lgs_wfs_ros.learning import validate

@@ -76,6 +76,66 @@ def test_tiny_reproduction(tmp_path):
     assert any("model-shaped" in c["check"] for c in data["checks"])
 
 
+TINY = dict(photons=(316, 1000), iterations=60, run_seconds=0.1, crb_samples=3, label="tiny")
+
+
+def _tiny(monkeypatch, **kw):
+    monkeypatch.setattr(reproduce.Config, "make", classmethod(lambda cls, quick: cls(**{**TINY, **kw})))
+
+
+def test_cli_writes_a_new_directory_and_exits_on_failed_checks(tmp_path, monkeypatch, capsys):
+    """No --out: a new directory (never the tracked docs/); exit 1 iff a check failed, 0 with
+    --allow-fail; the progress lines name the case being run."""
+    from lgs_wfs_ros import cli
+    docs = reproduce.docs_dir()
+    before = {p: p.read_bytes() for p in [docs / "reproduction.md", docs / "reproduction.json"]}
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    _tiny(monkeypatch, cases=("turbulent", "diagonal"), detectors=("polar",))
+    code = cli.main(["reproduce", "--quick"])
+    lines = capsys.readouterr().out.splitlines()
+    (out,) = list(tmp_path.glob("lgs-wfs-reproduce-*"))
+    data = json.loads((out / "reproduction.json").read_text())
+    failed = [c for c in data["checks"] if c["pass"] is False]
+    assert code == (1 if failed else 0)
+    assert {p: p.read_bytes() for p in before} == before
+    sweep_lines = [ln for ln in lines if " photons: " in ln]
+    assert sweep_lines and all(ln.split()[0] in ("turbulent", "diagonal") for ln in sweep_lines)
+    assert any(ln.startswith("validation run polar") for ln in lines)
+    # the same run with every check forced to pass / to fail
+    for verdict, allow, expected in ((True, [], 0), (False, [], 1), (False, ["--allow-fail"], 0)):
+        monkeypatch.setattr(reproduce, "checks", lambda *a, v=verdict, **k: [
+            {"check": "forced", "value": "-", "pass": v}])
+        assert cli.main(["reproduce", "--out", str(tmp_path / f"o{verdict}{allow}")] + allow) == expected
+    assert cli.main(["reproduce", "--out", str(tmp_path), "--update-docs"]) == 2
+
+
+def _row(case, label, key, ratio, paper_ratio):
+    return {"case": case, "detector": "polar" if case < 3 else "cartesian", "photons": 1000,
+            "algorithm": label, "paper_key": key, "euclid_mas": 100 * ratio, "mae_mas": 60 * ratio,
+            "paper_mas": 224.0 * paper_ratio, "euclid_over_paper": 1.0, "mae_over_paper": 1.0,
+            "ratio_cog_euclid": ratio, "ratio_cog_mae": ratio, "paper_ratio_cog": paper_ratio}
+
+
+def test_departures_follow_the_numbers():
+    """The departures text states what the numbers say: swapping a network's ratio from below
+    the paper's to above it changes the verdict words, and the ratio is printed."""
+    def text(r1):
+        rows = [_row(1, "ANN 1k paper prior", "ann", r1, 0.249), _row(1, "CoG", "cog", 1.0, 1.0)]
+        rows3 = [{"detector": "polar", "algorithm": "ANN 1k paper prior", "euclid_mas": 50.0,
+                  "ratio_cog_euclid": 0.5, "paper_ratio_cog": 0.37},
+                 {"detector": "polar", "algorithm": "CoG", "euclid_mas": 100.0, "ratio_cog_euclid": 1.0,
+                  "paper_ratio_cog": 1.0, "paper_mas": 237.31}]
+        vals = {"polar": {"profile_cog_bias_px": [0.2, 0.3]}}
+        return "\n".join(reproduce.departures({}, vals, rows, rows3))
+    good, bad = text(0.20), text(0.60)
+    assert "1 of 1 at or below the paper's ratio" in good and "20% of CoG" in good
+    assert "0 of 1 at or below the paper's ratio" in bad and "60% of CoG" in bad
+    assert "worse than CoG" not in good.replace("no worse than CoG", "")
+    assert "Networks at or below the paper's ratio in every case of Tables 1-2 and no worse than CoG in " \
+           "Table 3: ANN 1k paper prior" in good
+    assert "Table 3: none" in bad
+
+
 def test_sample_bag_report(tmp_path, capsys):
     from lgs_wfs_ros import cli
     from lgs_wfs_ros.analysis.bagdata import load_bag, make_sample_bag

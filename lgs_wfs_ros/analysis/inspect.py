@@ -10,7 +10,7 @@ import json
 
 from ..bags import BagReader
 from ..bags import subapertures as subaps
-from .bagdata import STRING, find_topics, read_json_topic, sensor_from_info
+from .bagload import STRING, find_topics, read_json_topic, sensor_from_info
 
 
 def bag_info(path) -> dict:
@@ -101,7 +101,8 @@ def format_info(info: dict) -> str:
     missing = [k for k in ("frame", "true_slopes", "sensor") if roles[k] is None
                and not (k == "frame" and roles.get("frame_subapertures"))]
     if missing:
-        lines.append("note      no " + ", ".join(missing) + " topic: not a complete lgs_wfs_ros bag")
+        lines.append("note      not an lgs_wfs_ros contract bag (docs/conventions.md section 5): no "
+                     + ", ".join(missing) + " topic" + ("" if roles["slopes"] else ", no slopes topic"))
     no_frames = roles["frame"] is None or info["topics"][roles["frame"]]["count"] == 0
     if no_frames and roles.get("frame_subapertures"):
         lines.append("note      no full frames, only chosen subapertures: `lgs-wfs replay` needs full frames")

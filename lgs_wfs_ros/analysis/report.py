@@ -1,6 +1,6 @@
 """``lgs-wfs report BAG``: per-algorithm errors, CRB, error by radius and over time, plots, JSON.
 
-For every centroider segment of a bag (see :mod:`.bagdata`) the slopes are joined to the
+For every centroider segment of a bag (see :mod:`.bagload`) the slopes are joined to the
 truths by header stamp and summarised with :func:`.metrics.summarize` (mean Euclidean
 error, per-axis mean absolute error, RMS, bias; px and mas). The Cramer-Rao bound needs the
 noise-free image model of the same frames: for a bag written by our simulator it is rebuilt
@@ -12,6 +12,14 @@ tried and rejected: the spot core is 1.19 px FWHM, so Fourier re-centring of und
 frames rings and the bound collapses.) Neither the errors nor the CRB read the recorded frames,
 so a bag whose frames were recorded as chosen subapertures only (or not at all) gets the
 same report; the header line counts those subaperture frames.
+
+Ratios compare like with like: ``x CoG`` on the frames both the algorithm and the (first)
+cog segment measured, ``x CRB`` on the frames the CRB was computed at (up to 256 for a single
+subaperture, 16 for a full pupil: :func:`crb_frame_count`); each says its basis. Plots
+(``--out``): error over time as a median and 16-84 % band per time bin (thousands of frames
+are never drawn one by one) with the CRB at its frames, the error distribution (density),
+the ratios to CoG and CRB, and for a full pupil the error by distance from the launch; each
+with a title, units in px and mas, and a legend.
 """
 
 from __future__ import annotations
@@ -26,9 +34,19 @@ from scipy.special import ellipe
 
 from ..optics import geometry
 from . import metrics
-from .bagdata import BagData, joined, load_bag
+from .bagload import BagData, joined, load_bag
 
-CRB_SAMPLES = 16
+CRB_SAMPLES = 16             # frames the CRB is computed at, at least ...
+CRB_SUBAPERTURE_FRAMES = 16 * 2784   # ... and up to this many subaperture-frames (<= 256 frames)
+CRB_MAX_FRAMES = 256
+
+
+def crb_frame_count(frames: int, n_subaps: int) -> int:
+    """How many of ``frames`` truth frames the CRB is computed at: enough subaperture-frames
+    for a ratio to the CRB that is not noise (a single subaperture gets up to 256 frames, a
+    full pupil 16), never more than there are."""
+    want = max(CRB_SAMPLES, min(CRB_MAX_FRAMES, -(-CRB_SUBAPERTURE_FRAMES // max(n_subaps, 1))))
+    return min(frames, want)
 
 
 # -- CRB --------------------------------------------------------------------------------------
@@ -86,9 +104,10 @@ def crb_covariances(sensor, image_at, truths: np.ndarray) -> np.ndarray:
 
 
 def simulator_model(data: BagData):
-    """``(image_at, truths (K, n, 2), note)`` rebuilt from the simulator settings in the
-    sensor description (keys ``simulation`` and ``start_stamp_ns``, as written by
-    :func:`.bagdata.make_sample_bag`), or None when the bag does not carry them."""
+    """``(image_at, truths (K, n, 2), note, stamps (K,))`` rebuilt from the simulator settings
+    in the sensor description (keys ``simulation`` and ``start_stamp_ns``, as written by
+    :func:`.bagwrite.make_sample_bag`) at :func:`crb_frame_count` frames spread over the bag,
+    or None when the bag does not carry them."""
     info = data.sensor_info or {}
     if data.sensor is None or data.truth is None or not len(data.truth) or "simulation" not in info:
         return None
@@ -100,7 +119,8 @@ def simulator_model(data: BagData):
         return None
     start = int(info.get("start_stamp_ns", data.truth.stamps[0]))
     lay = geometry.layout(data.sensor)
-    idx = np.unique(np.linspace(0, len(data.truth) - 1, min(CRB_SAMPLES, len(data.truth))).astype(int))
+    k = crb_frame_count(len(data.truth), lay.n_valid)
+    idx = np.unique(np.linspace(0, len(data.truth) - 1, k).astype(int))
     truths = data.truth.data[idx][:, lay.valid.ravel()].astype(float)
     frame_index = np.rint((data.truth.stamps[idx] - start) * data.sensor.frame_rate_hz / 1e9).astype(int)
     s = data.sensor
@@ -120,7 +140,8 @@ def simulator_model(data: BagData):
         if cfg.per_field:
             img = img / img.sum(axis=(1, 2), keepdims=True)
         return img * s.photons + s.background_e
-    return image_at, truths, f"simulator image model ({cfg.profile} profile) at the truths of {len(idx)} frames"
+    return (image_at, truths, f"simulator image model ({cfg.profile} profile) at the truths of {len(idx)} frames",
+            data.truth.stamps[idx])
 
 
 # -- analysis ---------------------------------------------------------------------------------
@@ -157,7 +178,7 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
     out = {"bag": data.path, "sensor": data.sensor_info or None, "mas_per_px": mas,
            "frames": data.frame_count, "truths": len(data.truth), "algorithms": {}, "crb": None,
            "subaperture_frames": data.subapertures}
-    series = {}
+    series, errs = {}, {}
     for seg in data.segments:
         stamps, est, tru, j = joined(data.truth, seg.slopes)
         err = metrics.errors(est[:, valid], tru[:, valid])            # (K, n, 2)
@@ -176,30 +197,83 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
             warnings.simplefilter("ignore", RuntimeWarning)      # frames with no finite error
             per_frame = np.nanmean(dist, axis=1) if dist.size else np.zeros(0)
         series[seg.label] = (stamps, per_frame)
+        errs[seg.label] = (stamps, err)
         out["algorithms"][seg.label] = s
-    cog = [v for v in out["algorithms"].values() if v["algorithm"] == "cog"]
-    for v in out["algorithms"].values():
-        ref = cog[0] if cog else None
-        v["ratio_to_cog"] = (v["mean_euclid"] / ref["mean_euclid"] if ref and ref["mean_euclid"] > 0
-                             else None)
-        v["mae_ratio_to_cog"] = (v["mae"] / ref["mae"] if ref and ref["mae"] > 0 else None)
+    _ratios_to_cog(out["algorithms"], errs)
     if crb:
-        out["crb"] = _crb_block(data, r_m, edges, mas, image_model)
-        if out["crb"] and out["crb"].get("mean_euclid"):
-            for v in out["algorithms"].values():
-                v["ratio_to_crb"] = v["mean_euclid"] / out["crb"]["mean_euclid"]
+        out["crb"], crb_frames = _crb_block(data, r_m, edges, mas, image_model)
+        _ratios_to_crb(out["algorithms"], errs, out["crb"], crb_frames)
+        out["_crb_frames"] = crb_frames
     out["_series"] = series
+    out["_errors"] = errs
     return out
 
 
+def _frame_stats(stamps, err, keep):
+    """(mean |err|, per-axis MAE) over the frames of ``stamps`` that are in ``keep``."""
+    e = err[np.isin(stamps, keep)].reshape(-1, 2)
+    e = e[np.isfinite(e).all(axis=1)]
+    if not len(e):
+        return float("nan"), float("nan")
+    return float(np.hypot(e[:, 0], e[:, 1]).mean()), float(np.abs(e).mean())
+
+
+def _ratios_to_cog(algs: dict, errs: dict) -> None:
+    """Each algorithm's mean |err| and MAE over CoG's on the frames both measured (the first
+    cog segment is the reference); on each one's own frames when they share none."""
+    ref = next((k for k, v in algs.items() if v["algorithm"] == "cog"), None)
+    for label, v in algs.items():
+        v["ratio_to_cog"] = v["mae_ratio_to_cog"] = None
+        if ref is None:
+            v["ratio_to_cog_basis"] = "no cog in the bag"
+            continue
+        common = np.intersect1d(errs[label][0], errs[ref][0])
+        if len(common):
+            (a, am), (b, bm) = _frame_stats(*errs[label], common), _frame_stats(*errs[ref], common)
+            v["ratio_to_cog_basis"] = f"{len(common)} frames measured by both"
+        else:
+            (a, am), (b, bm) = (v["mean_euclid"], v["mae"]), (algs[ref]["mean_euclid"], algs[ref]["mae"])
+            v["ratio_to_cog_basis"] = "each on its own frames (none in common)"
+        v["ratio_to_cog"] = a / b if b > 0 else None
+        v["mae_ratio_to_cog"] = am / bm if bm > 0 else None
+
+
+def _ratios_to_crb(algs: dict, errs: dict, crb: dict, crb_frames) -> None:
+    """Each algorithm's mean |err| over the CRB's expected |err| on the same frames and
+    subapertures (the frames the CRB was computed at that the algorithm measured); against the
+    CRB's mean when the CRB's frames are not known or none was measured."""
+    if not crb or not crb.get("mean_euclid"):
+        return
+    for label, v in algs.items():
+        stamps, err = errs[label]
+        if crb_frames is not None:
+            cst, d = crb_frames                                   # (K,), (K, n) expected |err|
+            common, ia, ib = np.intersect1d(stamps, cst, return_indices=True)
+            if len(common):
+                e = np.hypot(err[ia, :, 0], err[ia, :, 1])
+                ok = np.isfinite(e) & np.isfinite(d[ib])
+                if ok.any():
+                    v["ratio_to_crb"] = float(e[ok].mean() / d[ib][ok].mean())
+                    v["ratio_to_crb_basis"] = f"{len(common)} frames"
+                    continue
+        v["ratio_to_crb"] = v["mean_euclid"] / crb["mean_euclid"]
+        v["ratio_to_crb_basis"] = "all frames vs the CRB's sample"
+
+
 def _crb_block(data, r_m, edges, mas, image_model=None):
+    """(CRB summary dict, (stamps (K,), expected |err| (K, n)) of the frames it was computed
+    at, or None when their stamps are unknown)."""
     got = image_model if image_model is not None else simulator_model(data)
     if got is None:
         return {"method": "not computed: the bag carries no image model (simulator settings in "
-                          "its sensor description)"}
-    image_at, truths, note = got
+                          "its sensor description)"}, None
+    image_at, truths, note = got[:3]
     cov = crb_covariances(data.sensor, image_at, truths)
     block = crb_summary(cov, mas)
+    block["frames"] = int(truths.shape[0])
+    per_frame = None
+    if len(got) > 3:
+        per_frame = (np.asarray(got[3], np.int64), mean_abs_norm(cov).reshape(truths.shape[0], -1))
     block["method"] = (note + f", read noise {data.sensor.read_noise_e:g} e-, background "
                        f"{data.sensor.background_e:g} e-; flux a nuisance parameter")
     n = truths.shape[1]
@@ -209,7 +283,7 @@ def _crb_block(data, r_m, edges, mas, image_model=None):
         block["by_radius"] = [{"r_min_m": float(edges[k]), "r_max_m": float(edges[k + 1]),
                                "mean_euclid": float(np.nanmean(d[ring == k])) if (ring == k).any()
                                else float("nan")} for k in range(len(edges) - 1)]
-    return block
+    return block, per_frame
 
 
 # -- output -----------------------------------------------------------------------------------
@@ -236,6 +310,12 @@ def format_report(res: dict) -> str:
         lines.append(f"{name:<16}{f(v.get('ratio_to_cog'))}{f(v.get('ratio_to_crb'))}"
                      f"{(f(v.get('mae_ratio_to_cog'))):>11}{j['joined']:>9}{j['truth_without_slopes']:>10}"
                      f"{j['duplicate_slope_stamps']:>6}")
+    bases = sorted({f"x CoG on {v['ratio_to_cog_basis']}" for v in res["algorithms"].values()
+                    if v.get("ratio_to_cog_basis")} |
+                   {f"x CRB on {v['ratio_to_crb_basis']}" for v in res["algorithms"].values()
+                    if v.get("ratio_to_crb_basis")})
+    if bases:
+        lines.append("(ratios on the same frames: " + "; ".join(bases) + ")")
     if "method" in crb:
         lines.append("")
         lines.append("CRB: " + crb["method"])
@@ -255,48 +335,175 @@ def format_report(res: dict) -> str:
     return "\n".join(lines)
 
 
-def _save(fig, ax, path: Path) -> str:
-    """Legend, grid, layout, write the PNG, close the figure; the path as text."""
+TIME_BINS = 120          # the time series is drawn as at most this many bins, not one point a frame
+HIST_BINS = 80
+
+
+def _mas_axis(ax, mas_per_px: float, which: str = "y") -> None:
+    """A second axis in mas beside a px axis."""
+    conv = (lambda v: v * mas_per_px, lambda v: v / mas_per_px)
+    if which == "y":
+        ax.secondary_yaxis("right", functions=conv).set_ylabel("mas")
+    else:
+        ax.secondary_xaxis("top", functions=conv).set_xlabel("mas")
+
+
+def _save(fig, path: Path) -> str:
+    """Layout, write the PNG, close the figure; the path as text."""
     import matplotlib.pyplot as plt
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return str(path)
 
 
-def write_plots(res: dict, out_dir: Path) -> list[str]:
-    """PNG plots of the error time series and (full pupil) the error by radius."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def binned(t: np.ndarray, y: np.ndarray, bins: int = TIME_BINS):
+    """Per time bin: (centre, median, 16th, 84th percentile) of ``y`` (NaN skipped), for bins
+    that hold a finite value; ``(t, y, y, y)`` when there are fewer points than bins."""
+    ok = np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if len(t) <= bins:
+        return t, y, y, y
+    edges = np.linspace(t.min(), t.max(), bins + 1)
+    which = np.clip(np.digitize(t, edges) - 1, 0, bins - 1)
+    order = np.argsort(which, kind="stable")
+    groups = np.split(y[order], np.flatnonzero(np.diff(which[order])) + 1)
+    centres = (edges[:-1] + edges[1:])[np.unique(which)] / 2
+    q = np.array([np.percentile(g, [50, 16, 84]) for g in groups])
+    return centres, q[:, 0], q[:, 1], q[:, 2]
 
-    files = []
-    fig, ax = plt.subplots(figsize=(8, 4))
+
+def _title(res: dict) -> str:
+    return Path(res["bag"]).name
+
+
+def plot_timeseries(res: dict, path: Path) -> str:
+    """Per-frame mean |error| over time: each algorithm's median and 16-84 % band per time bin
+    (thousands of frames are not drawn one by one); the CRB at the frames it was computed at."""
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(9, 4.2))
     t0 = min((s[0] for s, _ in res["_series"].values() if len(s)), default=0)
-    for name, (stamps, per_frame) in res["_series"].items():
-        ax.plot((stamps - t0) / 1e9, per_frame, lw=0.8,
-                label=f"{name} (mean {res['algorithms'][name]['mean_euclid']:.3f} px)")
+    n_max = 0
+    for k, (name, (stamps, per_frame)) in enumerate(res["_series"].items()):
+        t = (stamps - t0) / 1e9
+        c, med, lo, hi = binned(t, per_frame)
+        n_max = max(n_max, len(per_frame))
+        color = f"C{k}"
+        ax.fill_between(c, lo, hi, color=color, alpha=0.2, lw=0)
+        ax.plot(c, med, color=color, lw=1.4,
+                label=f"{name}: mean {res['algorithms'][name]['mean_euclid']:.3f} px")
+    crb = res.get("crb") or {}
+    frames = res.get("_crb_frames")
+    if frames is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = np.nanmean(frames[1], axis=1)
+        ax.plot((frames[0] - t0) / 1e9, d, "k.-", ms=2.5, lw=0.8,
+                label=f"CRB at {len(d)} frames: mean {crb['mean_euclid']:.3f} px")
+    elif "mean_euclid" in crb:
+        ax.axhline(crb["mean_euclid"], color="k", ls="--", lw=1, label=f"CRB: {crb['mean_euclid']:.3f} px")
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("time from the first stamp (s)")
+    ax.set_ylabel("mean |error| over subapertures (px)")
+    _mas_axis(ax, res["mas_per_px"])
+    per_bin = max(1, round(n_max / TIME_BINS)) if n_max > TIME_BINS else 1
+    ax.set_title(f"Centroid error over time: {_title(res)}\n"
+                 + (f"median (line) and 16-84 % (band) of ~{per_bin} frames per bin" if per_bin > 1
+                    else "one point per frame"), fontsize=10)
+    ax.legend(fontsize=8, loc="upper right")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_distribution(res: dict, path: Path) -> str:
+    """Density of |error| per subaperture and frame, one step line per algorithm."""
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    dists = {}
+    for name, (_, err) in res["_errors"].items():
+        d = np.hypot(err[..., 0], err[..., 1]).ravel()
+        dists[name] = d[np.isfinite(d)]
+    top = max((np.percentile(d, 99.5) for d in dists.values() if len(d)), default=1.0)
+    edges = np.linspace(0, top, HIST_BINS + 1)
+    for k, (name, d) in enumerate(dists.items()):
+        ax.hist(d, bins=edges, density=True, histtype="step", lw=1.4, color=f"C{k}",
+                label=f"{name}: mean {d.mean():.3f} px ({len(d):,} values)" if len(d) else name)
     crb = res.get("crb") or {}
     if "mean_euclid" in crb:
-        ax.axhline(crb["mean_euclid"], color="k", ls="--", lw=1, label=f"CRB ({crb['mean_euclid']:.3f} px)")
-    ax.set_xlabel("time from first stamp (s)")
-    ax.set_ylabel("mean |error| over subapertures (px)")
-    files.append(_save(fig, ax, out_dir / "error_timeseries.png"))
+        ax.axvline(crb["mean_euclid"], color="k", ls="--", lw=1, label=f"CRB mean: {crb['mean_euclid']:.3f} px")
+    ax.set_xlabel("|error| (px), per subaperture and frame")
+    ax.set_ylabel("density (1/px)")
+    _mas_axis(ax, res["mas_per_px"], "x")
+    ax.set_title(f"Distribution of the centroid error: {_title(res)}\n(99.5 % of the values shown)", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_ratios(res: dict, path: Path) -> str | None:
+    """Each algorithm's mean |error| relative to CoG and to the CRB on the same frames."""
+    import matplotlib.pyplot as plt
+    names = list(res["algorithms"])
+    cols = [(key, lab) for key, lab in (("ratio_to_cog", "x CoG"), ("ratio_to_crb", "x CRB"))
+            if any(res["algorithms"][n].get(key) is not None for n in names)]
+    if not cols:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 0.6 + 0.55 * len(names) * len(cols) + 0.8))
+    h = 0.8 / len(cols)
+    y = np.arange(len(names))
+    for j, (key, lab) in enumerate(cols):
+        vals = np.array([res["algorithms"][n].get(key) or np.nan for n in names], float)
+        bars = ax.barh(y + (j - (len(cols) - 1) / 2) * h, vals, height=h, color=f"C{j}", label=lab)
+        for b, v in zip(bars, vals):
+            if np.isfinite(v):
+                ax.text(max(v, 1.0), b.get_y() + b.get_height() / 2, f"  {v:.2f}", va="center", fontsize=8)
+    ax.axvline(1.0, color="k", lw=1)
+    ax.set_yticks(y, names)
+    ax.invert_yaxis()
+    ax.set_xlabel("mean |error| ratio (1 = as good as the reference)")
+    ax.set_xlim(0, np.nanmax([res["algorithms"][n].get(k) or np.nan for n in names for k, _ in cols]) * 1.18)
+    ax.set_title(f"Error relative to CoG and to the Cramer-Rao bound: {_title(res)}\n"
+                 "on the frames both measured / the frames the CRB was computed at", fontsize=10)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3, axis="x")
+    return _save(fig, path)
+
+
+def plot_by_radius(res: dict, path: Path) -> str | None:
+    """Mean |error| per ring of subaperture distance from the launch (full pupil)."""
+    import matplotlib.pyplot as plt
     first = next(iter(res["algorithms"].values()))
-    if first.get("by_radius") and len(first["by_radius"]) > 1:
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for name, v in res["algorithms"].items():
-            mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in v["by_radius"]]
-            ax.plot(mid, [r["mean_euclid"] for r in v["by_radius"]], "o-", label=name)
-        if crb.get("by_radius"):
-            mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in crb["by_radius"]]
-            ax.plot(mid, [r["mean_euclid"] for r in crb["by_radius"]], "k--", label="CRB")
-        ax.set_xlabel("subaperture distance from the launch (m)")
-        ax.set_ylabel("mean |error| (px)")
-        files.append(_save(fig, ax, out_dir / "error_by_radius.png"))
-    return files
+    if not first.get("by_radius") or len(first["by_radius"]) < 2:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for k, (name, v) in enumerate(res["algorithms"].items()):
+        mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in v["by_radius"]]
+        ax.plot(mid, [r["mean_euclid"] for r in v["by_radius"]], "o-", color=f"C{k}", label=name)
+    crb = res.get("crb") or {}
+    if crb.get("by_radius"):
+        mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in crb["by_radius"]]
+        ax.plot(mid, [r["mean_euclid"] for r in crb["by_radius"]], "k--", label="CRB")
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("subaperture distance from the launch (m)")
+    ax.set_ylabel("mean |error| (px)")
+    _mas_axis(ax, res["mas_per_px"])
+    ax.set_title(f"Error against spot elongation (distance from the launch): {_title(res)}", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def write_plots(res: dict, out_dir: Path) -> list[str]:
+    """PNG plots: error over time (binned), error distribution, ratios to CoG and CRB, and
+    (full pupil) error by radius. Returns the files written."""
+    import matplotlib
+    matplotlib.use("Agg")
+    out_dir = Path(out_dir)
+    files = [plot_timeseries(res, out_dir / "error_timeseries.png"),
+             plot_distribution(res, out_dir / "error_distribution.png"),
+             plot_ratios(res, out_dir / "error_ratios.png"),
+             plot_by_radius(res, out_dir / "error_by_radius.png")]
+    return [f for f in files if f]
 
 
 def public(res: dict) -> dict:
@@ -341,4 +548,4 @@ def report_bag(path, out_dir=None, as_json: bool = False, max_frames: int = 200)
 
 
 __all__ = ["report_bag", "analyse", "format_report", "write_plots", "public", "crb_summary",
-           "mean_abs_norm", "crb_covariances", "simulator_model"]
+           "mean_abs_norm", "crb_covariances", "simulator_model", "crb_frame_count", "binned"]

@@ -1,7 +1,8 @@
-"""The MCAP records this package writes and reads (spec: https://mcap.dev/spec), as plain
-struct packing. Every record is opcode (uint8), body length (uint64), body; strings are
-uint32 length + UTF-8, byte arrays uint32/uint64 length + bytes, maps uint32 byte length +
-pairs. Little endian throughout."""
+"""The MCAP records this package's writer packs (spec: https://mcap.dev/spec), as plain
+struct packing; reading goes through the ``mcap`` library's record readers (bags/reader.py).
+Every record is opcode (uint8), body length (uint64), body; strings are uint32 length +
+UTF-8, byte arrays uint32/uint64 length + bytes, maps uint32 byte length + pairs. Little
+endian throughout."""
 
 import struct
 
@@ -108,68 +109,3 @@ FOOTER_PREFIX_LEN = 1 + 8 + 8 + 8   # opcode, length, summary_start, summary_off
 
 def footer_prefix(summary_start, summary_offset_start):
     return struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start)
-
-
-# --- reading ---------------------------------------------------------------------------
-
-class Cursor:
-    """Bounds-checked little-endian reads from a buffer; ValueError past the end."""
-
-    __slots__ = ("mv", "pos", "end")
-
-    def __init__(self, buf, pos=0, end=None):
-        self.mv = memoryview(buf).cast("B") if not isinstance(buf, memoryview) else buf
-        self.pos = pos
-        self.end = len(self.mv) if end is None else end
-
-    def take(self, n):
-        if n < 0 or self.pos + n > self.end:
-            raise ValueError(f"record field runs past its end ({n} bytes at {self.pos}, end {self.end})")
-        out = self.mv[self.pos:self.pos + n]
-        self.pos += n
-        return out
-
-    def u8(self):
-        return self.take(1)[0]
-
-    def u16(self):
-        return _U16.unpack(self.take(2))[0]
-
-    def u32(self):
-        return _U32.unpack(self.take(4))[0]
-
-    def u64(self):
-        return _U64.unpack(self.take(8))[0]
-
-    def string(self):
-        return str(self.take(self.u32()), "utf-8")
-
-    def str_map(self):
-        n = self.u32()
-        end = self.pos + n
-        if end > self.end:
-            raise ValueError("map runs past its record")
-        sub = Cursor(self.mv, self.pos, end)
-        self.pos = end
-        out = {}
-        while sub.pos < end:
-            k = sub.string()
-            out[k] = sub.string()
-        return out
-
-
-def parse_schema(c):
-    sid = c.u16()
-    name = c.string()
-    enc = c.string()
-    data = bytes(c.take(c.u32()))
-    return sid, name, enc, data
-
-
-def parse_channel(c):
-    cid = c.u16()
-    sid = c.u16()
-    topic = c.string()
-    enc = c.string()
-    meta = c.str_map()
-    return cid, sid, topic, enc, meta

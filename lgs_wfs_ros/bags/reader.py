@@ -1,7 +1,10 @@
 """BagReader: read MCAP bags (ours or rosbag2's) without ROS; recover truncated ones.
 
-Reads the summary section when the file is complete, else scans records from the start.
-Messages come out in file order. Every failure is a :class:`BagError` with a message for
+Reads MCAP by the spec (https://mcap.dev/spec): Schema and Channel records in the data
+section, inside chunks or in the summary; with or without summary and indexes; chunks
+uncompressed, zstd or lz4. Records are parsed by the ``mcap`` library's record readers; the
+walk over the file, the bounded chunk decompression and the summary CRC check are ours (see
+docs/bags.md, "Reading"). Messages come out in file order. Every failure is a :class:`BagError` with a message for
 users: not a file, not MCAP, truncated (no footer: e.g. the recorder was SIGKILLed),
 corrupt (CRC mismatch, undecodable chunk, malformed record), unknown topic, wrong type.
 
@@ -9,9 +12,11 @@ corrupt (CRC mismatch, undecodable chunk, malformed record), unknown topic, wron
 missing or the summary is corrupt, while reading at the first corrupt chunk. With
 ``strict=False`` a reader returns everything readable: all complete chunks up to a
 truncation, skipping corrupt chunks whose length is intact; ``problems`` lists what was
-skipped. :func:`recover` uses that to copy a damaged bag into a complete one.
+skipped. :func:`lgs_wfs_ros.bags.recovery.recover` uses that to copy a damaged bag into a
+complete one.
 """
 
+import io
 import mmap
 import os
 import struct
@@ -19,6 +24,10 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+
+from mcap import records
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
 
 from . import mcapfmt as fmt
 from .cdr import decode_image, decode_string
@@ -38,28 +47,144 @@ class _Corrupt(Exception):
     pass
 
 
+class _Exact(ReadDataStream):
+    """mcap's record reader over one record body that refuses short reads: a field that runs
+    past its record is corruption, not a shorter string (mcap's ReadDataStream returns what
+    is there)."""
+
+    def read(self, length):
+        if length > self._limit - self.count:
+            raise _Corrupt(f"a field of {length} bytes runs past its record "
+                           f"({self._limit - self.count} left)")
+        return super().read(length)
+
+
+def _exact(body):
+    s = _Exact(io.BytesIO(body))
+    s._limit = len(body)
+    return s
+
+
+_RECORDS = {fmt.OP_HEADER: records.Header, fmt.OP_FOOTER: records.Footer, fmt.OP_SCHEMA: records.Schema,
+            fmt.OP_CHANNEL: records.Channel, fmt.OP_CHUNK_INDEX: records.ChunkIndex, fmt.OP_METADATA: records.Metadata,
+            fmt.OP_METADATA_INDEX: records.MetadataIndex, fmt.OP_STATISTICS: records.Statistics}
+# what mcap's record readers raise on bytes that are not a record (besides our _Corrupt)
+_PARSE_ERRORS = (McapError, ValueError, struct.error, UnicodeDecodeError, OverflowError, KeyError)
+
+
+_MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, publish time
+_MAX_TIME = 2**63 - 1                      # times are handed out as int64 ns
+
+
+def _message(body):
+    """A Message record without copying its data (a memoryview into ``body``). The one record
+    parsed by hand: through mcap's reader it costs two copies of every frame (docs/bags.md)."""
+    if len(body) < _MESSAGE_HEAD.size:
+        raise _Corrupt(f"Message record of {len(body)} bytes is shorter than its header")
+    cid, seq, log, pub = _MESSAGE_HEAD.unpack_from(body)
+    if log > _MAX_TIME or pub > _MAX_TIME:
+        raise _Corrupt(f"Message time {max(log, pub)} ns is past 2262 (int64 ns): not a real time")
+    return ("message", cid, seq, log, pub, memoryview(body)[_MESSAGE_HEAD.size:])
+
+
+_CHUNK_HEAD = struct.Struct("<QQQI")       # start time, end time, uncompressed size, CRC
+
+
+def _chunk(body):
+    """(compression, uncompressed size, CRC, records (memoryview, compressed)) of a Chunk
+    record, without copying its records (mcap's Chunk.read copies them once more)."""
+    mv = memoryview(body)
+    if len(mv) < _CHUNK_HEAD.size + 4:
+        raise _Corrupt("Chunk record shorter than its header")
+    _, _, usize, crc = _CHUNK_HEAD.unpack_from(mv)
+    pos = _CHUNK_HEAD.size
+    (n,) = struct.unpack_from("<I", mv, pos)
+    pos += 4
+    if n > len(mv) - pos - 8:
+        raise _Corrupt("Chunk compression name runs past its record")
+    try:
+        kind = str(mv[pos:pos + n], "utf-8")
+    except UnicodeDecodeError as err:
+        raise _Corrupt(f"Chunk compression name is not UTF-8: {err}") from None
+    pos += n
+    (size,) = struct.unpack_from("<Q", mv, pos)
+    pos += 8
+    if size != len(mv) - pos:
+        raise _Corrupt(f"Chunk says {size} bytes of records, its record holds {len(mv) - pos}")
+    return kind, usize, crc, mv[pos:]
+
+
+def parse_record(op, body):
+    """The mcap library's record (``mcap.records``) of one record body, or None for an opcode
+    this reader does not use. _Corrupt when the bytes do not parse within ``len(body)``."""
+    cls = _RECORDS.get(op)
+    if cls is None:
+        return None
+    stream = _exact(body)
+    try:
+        return cls.read(stream)
+    except _Corrupt:
+        raise
+    except _PARSE_ERRORS as err:
+        raise _Corrupt(f"malformed {cls.__name__} record: {err or type(err).__name__}") from None
+
+
+def iter_records(data):
+    """(opcode, body) of the records packed in ``data`` (a chunk's records, a summary)."""
+    mv = memoryview(data)
+    pos, end = 0, len(mv)
+    while pos < end:
+        if end - pos < 9:
+            raise _Corrupt(f"{end - pos} stray bytes after the last record")
+        op, length = struct.unpack_from("<BQ", mv, pos)
+        if length > end - pos - 9:
+            raise _Corrupt(f"record (opcode {op:#04x}) of {length} bytes runs past its container")
+        yield op, mv[pos + 9:pos + 9 + length]
+        pos += 9 + length
+
+
 def _decompress(kind, data, size):
+    """A chunk's records. Our own bounds rather than mcap's ``breakup_chunk``: the output is
+    never larger than the chunk says (a flipped size cannot make zstd/lz4 allocate gigabytes)
+    and must be exactly that size (mcap does not check it)."""
+    if size > MAX_CHUNK_BYTES:
+        raise _Corrupt(f"implausible uncompressed chunk size {size}")
     try:
         if kind == "":
-            return data
-        if kind == "zstd":
+            out = data
+        elif kind == "zstd":
             import zstandard
+            declared = zstandard.frame_content_size(data)
+            if declared not in (-1, size):
+                raise _Corrupt(f"zstd frame holds {declared} bytes, the chunk says {size}")
             out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
         elif kind == "lz4":
             import lz4.frame
-            out = lz4.frame.decompress(data)
+            out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
         else:
-            raise _Corrupt(f"unsupported chunk compression {kind!r}")
+            raise _Corrupt(f"unsupported chunk compression {kind!r} (the MCAP spec names zstd and lz4)")
     except _Corrupt:
         raise
     except Exception as err:  # codec errors have many types
         raise _Corrupt(f"{kind} decompression failed: {err}") from None
     if len(out) != size:
-        raise _Corrupt(f"chunk decompressed to {len(out)} bytes, header says {size}")
+        raise _Corrupt(f"chunk decompressed to {len(out)} bytes, its header says {size}")
     return out
 
 
+MAX_CHUNK_BYTES = 4 * 2**30          # mcap's own record size limit
 SCAN_SUMMARY_BYTES = 256 * 2**20   # summary() reads bags up to this size whole: exact per-topic rates
+
+
+def _item(rec):
+    """The reader's tuple for a library record (see BagReader._records)."""
+    if isinstance(rec, records.Schema):
+        return ("schema", rec.id, rec.name, rec.encoding, bytes(rec.data))
+    if isinstance(rec, records.Channel):
+        return ("channel", rec.id, rec.schema_id, rec.topic, rec.message_encoding, dict(rec.metadata))
+    if isinstance(rec, records.Metadata):
+        return ("metadata", rec.name, dict(rec.metadata))
+    return None
 
 
 class BagReader:
@@ -85,7 +210,7 @@ class BagReader:
         try:
             if self.size < 8:
                 raise self._err(f"not an MCAP file (only {self.size} bytes)")
-            try:
+            try:          # mapped: a frame is read in place, not copied out of the file (docs/bags.md)
                 self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
             except (OSError, ValueError) as err:
                 raise self._err(f"cannot map the file: {err}") from None
@@ -100,15 +225,15 @@ class BagReader:
         return BagError(f"{self.path}: {what}")
 
     def _open(self):
-        if bytes(self._buf[:8]) != fmt.MAGIC:
+        if bytes(self._read(0, 8)) != fmt.MAGIC:
             raise self._err("not an MCAP file (bad magic bytes)")
         try:
             op, body = self._read_record_at(8)
             if op != fmt.OP_HEADER:
                 raise _Corrupt("first record is not an MCAP Header")
-            c = fmt.Cursor(body)
-            self.profile, self.library = c.string(), c.string()
-        except (_Truncated, _Corrupt, ValueError, struct.error) as err:
+            header = parse_record(op, body)
+            self.profile, self.library = header.profile, header.library
+        except (_Truncated, _Corrupt) as err:
             raise self._err(f"unreadable MCAP header: {err}") from None
         self._data_start = 8 + 9 + len(body)
         self._summary = None
@@ -119,7 +244,7 @@ class BagReader:
         except _Truncated as err:
             self._problem(f"truncated ({err}); the complete chunks before the cut are readable: "
                           f"run `lgs-wfs recover {self.path} OUT.mcap`")
-        except (_Corrupt, ValueError, struct.error) as err:
+        except _Corrupt as err:
             self._problem(f"corrupt summary ({err})")
 
     def _problem(self, text):
@@ -127,100 +252,107 @@ class BagReader:
             raise self._err(text)
         self.problems.append(text)
 
+    def _read(self, offset, n):
+        """``n`` bytes at ``offset`` (a view into the mapped file; callers check the bounds)."""
+        return self._buf[offset:offset + n]
+
     def _read_record_at(self, offset):
         """(opcode, body bytes) of the record at a file offset; _Truncated past the end."""
         if offset + 9 > self.size:
             raise _Truncated(f"file ends inside a record header at byte {offset}")
-        op, length = struct.unpack_from("<BQ", self._buf, offset)
-        if offset + 9 + length > self.size:
+        op, length = struct.unpack("<BQ", self._read(offset, 9))
+        if length > self.size - offset - 9:
             raise _Truncated(f"record at byte {offset} (opcode {op:#04x}, {length} bytes) runs past "
                              f"the end of the file ({self.size} bytes)")
-        return op, self._buf[offset + 9:offset + 9 + length]
+        return op, self._read(offset + 9, length)
 
     def _read_summary(self):
+        """The summary section as dicts, None for a valid file without one. Parsed with mcap's
+        record readers; the footer's summary CRC (which mcap does not check) is checked."""
         if self.size < self._data_start + _TRAILER:
             raise _Truncated("file too short for an MCAP footer")
-        tail = bytes(self._buf[self.size - _TRAILER:])
+        footer_at = self.size - _TRAILER
+        tail = bytes(self._read(footer_at, _TRAILER))
         if tail[-8:] != fmt.MAGIC or tail[0] != fmt.OP_FOOTER:
             raise _Truncated("no footer at the end of the file")
-        _, length, sstart, ostart, crc = struct.unpack("<BQQQI", tail[:_FOOTER_LEN])
-        if length != 20:
+        if struct.unpack_from("<Q", tail, 1)[0] != 20:
             raise _Corrupt("malformed footer")
-        footer_at = self.size - _TRAILER
-        out = {"schemas": {}, "channels": {}, "stats": None, "chunks": [], "metadata": []}
-        if sstart == 0:
+        footer = parse_record(fmt.OP_FOOTER, tail[9:_FOOTER_LEN])
+        if footer.summary_start == 0:
             return None            # a valid file without summary: scan
-        if not self._data_start <= sstart <= footer_at:
+        if not self._data_start <= footer.summary_start <= footer_at:
             raise _Corrupt("footer points outside the file")
-        blob = self._buf[sstart:footer_at]
-        if crc:
-            calc = zlib.crc32(tail[:_FOOTER_LEN - 4], zlib.crc32(blob))
-            if calc != crc:
+        blob = self._read(footer.summary_start, footer_at - footer.summary_start)
+        if footer.summary_crc:
+            if zlib.crc32(tail[:_FOOTER_LEN - 4], zlib.crc32(blob)) != footer.summary_crc:
                 raise _Corrupt("summary CRC mismatch")
-        c = fmt.Cursor(blob)
-        while c.pos < c.end:
-            op = c.u8()
-            body = fmt.Cursor(c.take(c.u64()))
-            if op == fmt.OP_SCHEMA:
-                sid, name, enc, data = fmt.parse_schema(body)
-                out["schemas"][sid] = (name, enc, data)
-            elif op == fmt.OP_CHANNEL:
-                cid, sid, topic, enc, meta = fmt.parse_channel(body)
-                out["channels"][cid] = (topic, sid, enc, meta)
-            elif op == fmt.OP_STATISTICS:
-                n, _, _, _, _, nchunks = struct.unpack("<QHIIII", body.take(26))
-                start, end = body.u64(), body.u64()
-                m = body.u32()
-                counts = dict(struct.iter_unpack("<HQ", body.take(m))) if m % 10 == 0 else None
-                if counts is None:
-                    raise _Corrupt("malformed statistics")
-                out["stats"] = {"count": n, "chunks": nchunks, "start": start, "end": end, "counts": counts}
-            elif op == fmt.OP_CHUNK_INDEX:
-                start, end, off, length = struct.unpack("<QQQQ", body.take(32))
-                m = body.u32()
-                chans = {cid for cid, _ in struct.iter_unpack("<HQ", body.take(m))} if m % 10 == 0 else None
-                if chans is None or off + length > footer_at:
-                    raise _Corrupt("malformed chunk index")
-                out["chunks"].append((off, length, chans))
-            elif op == fmt.OP_METADATA_INDEX:
-                off, length = body.u64(), body.u64()
-                out["metadata"].append((off, length, body.string()))
+        out = {"schemas": {}, "channels": {}, "stats": None, "chunks": [], "metadata": []}
+        for op, body in iter_records(blob):
+            rec = parse_record(op, body)
+            if isinstance(rec, records.Schema):
+                out["schemas"][rec.id] = (rec.name, rec.encoding, bytes(rec.data))
+            elif isinstance(rec, records.Channel):
+                out["channels"][rec.id] = (rec.topic, rec.schema_id, rec.message_encoding, dict(rec.metadata))
+            elif isinstance(rec, records.Statistics):
+                out["stats"] = {"count": rec.message_count, "chunks": rec.chunk_count,
+                                "start": rec.message_start_time, "end": rec.message_end_time,
+                                "counts": dict(rec.channel_message_counts)}
+            elif isinstance(rec, records.ChunkIndex):
+                if rec.chunk_start_offset + rec.chunk_length > footer_at:
+                    raise _Corrupt("chunk index points past the data section")
+                out["chunks"].append((rec.chunk_start_offset, rec.chunk_length,
+                                      set(rec.message_index_offsets)))
+            elif isinstance(rec, records.MetadataIndex):
+                out["metadata"].append((rec.offset, rec.length, rec.name))
         for cid, (topic, sid, _, _) in out["channels"].items():
             if sid and sid not in out["schemas"]:
                 raise _Corrupt(f"channel {topic} refers to a missing schema")
         return out
 
     # -- scanning ---------------------------------------------------------------------
+    def _skippable(self, channel_filter):
+        """{chunk offset: channel ids} of chunks that may be skipped for channel_filter: only
+        when the summary indexes every chunk's channels and knows every one of those channels
+        (then a skipped chunk holds nothing the caller wants, not even a needed Channel)."""
+        s = self._summary
+        if channel_filter is None or s is None or not s["chunks"]:
+            return None
+        if any(not chans or not chans <= s["channels"].keys() for _, _, chans in s["chunks"]):
+            return None
+        return {off: chans for off, _, chans in s["chunks"]}
+
     def _records(self, channel_filter=None):
-        """Yield ('schema'|'channel'|'message'|'metadata', ...) in file order. Handles damage
-        according to ``strict``; chunks holding none of channel_filter are skipped when the
-        summary lists their channels."""
-        chunk_chans = None
-        if channel_filter is not None and self._summary is not None and self._summary["chunks"]:
-            chunk_chans = {off: chans for off, _, chans in self._summary["chunks"]}
+        """Yield ('schema'|'channel'|'message'|'metadata', ...) in file order, from the data
+        section, inside chunks or not. Handles damage according to ``strict``; chunks holding
+        none of channel_filter are skipped when the summary lists their channels.
+
+        The walk over top-level records is ours (mcap's StreamReader stops at the first bad
+        record and gives no offsets): it knows each record's offset and length, so a corrupt
+        record whose length is intact is skipped, a cut is found before reading, and unwanted
+        chunks are never read. Each record is parsed by mcap's record readers."""
+        skip = self._skippable(channel_filter)
         offset = self._data_start
         while offset < self.size:
             try:
                 if offset + 9 > self.size:
                     raise _Truncated(f"file ends inside a record header at byte {offset}")
-                op, length = struct.unpack_from("<BQ", self._buf, offset)
+                op, length = struct.unpack("<BQ", self._read(offset, 9))
                 nxt = offset + 9 + length
                 if nxt > self.size:
                     raise _Truncated(f"record at byte {offset} (opcode {op:#04x}) needs {length} bytes, "
                                      f"the file has {self.size - offset - 9} left")
                 if op in (fmt.OP_DATA_END, fmt.OP_FOOTER):
                     return
-                if op == fmt.OP_CHUNK and chunk_chans is not None and offset in chunk_chans \
-                        and not (chunk_chans[offset] & channel_filter):
+                if op == fmt.OP_CHUNK and skip is not None and offset in skip \
+                        and not (skip[offset] & channel_filter):
                     offset = nxt
                     continue
                 if op not in (fmt.OP_SCHEMA, fmt.OP_CHANNEL, fmt.OP_MESSAGE, fmt.OP_CHUNK, fmt.OP_METADATA):
                     offset = nxt
                     continue
-                body = self._buf[offset + 9:nxt]
                 try:
-                    items = list(self._parse(op, body))
-                except (_Corrupt, ValueError, struct.error, UnicodeDecodeError) as err:
+                    items = self._parse(op, self._read(offset + 9, length))
+                except _Corrupt as err:
                     self._problem(f"corrupt record at byte {offset} (opcode {op:#04x}): {err}")
                     items = []
                 yield from items
@@ -230,69 +362,72 @@ class BagReader:
                 return
 
     def _parse(self, op, body):
-        if op == fmt.OP_CHUNK:
-            c = fmt.Cursor(body)
-            _, _, usize, crc = struct.unpack("<QQQI", c.take(28))
-            kind = c.string()
-            data = c.take(c.u64())
-            if usize > 2**34:
-                raise _Corrupt(f"implausible uncompressed chunk size {usize}")
-            records = _decompress(kind, data, usize)
-            if crc and zlib.crc32(records) != crc:
-                raise _Corrupt("chunk CRC mismatch")
-            inner = fmt.Cursor(records)
-            out = []
-            while inner.pos < inner.end:
-                iop = inner.u8()
-                rec = inner.take(inner.u64())
-                if iop in (fmt.OP_SCHEMA, fmt.OP_CHANNEL, fmt.OP_MESSAGE):
-                    out += self._parse(iop, rec)
-            return out
-        c = fmt.Cursor(body)
-        if op == fmt.OP_SCHEMA:
-            return [("schema",) + fmt.parse_schema(c)]
-        if op == fmt.OP_CHANNEL:
-            return [("channel",) + fmt.parse_channel(c)]
+        """Items of one top-level record (a chunk: of each record inside it)."""
         if op == fmt.OP_MESSAGE:
-            cid, seq, log, pub = struct.unpack("<HIQQ", c.take(22))
-            return [("message", cid, seq, log, pub, c.mv[c.pos:])]
-        if op == fmt.OP_METADATA:
-            return [("metadata", c.string(), c.str_map())]
-        return []
+            return [_message(body)]
+        if op != fmt.OP_CHUNK:
+            return [_item(parse_record(op, body))]
+        kind, usize, crc, packed = _chunk(body)
+        data = _decompress(kind, packed, usize)
+        if crc and zlib.crc32(data) != crc:
+            raise _Corrupt("chunk CRC mismatch")
+        out = []
+        for iop, ibody in iter_records(data):
+            if iop == fmt.OP_MESSAGE:
+                out.append(_message(ibody))
+            elif iop in (fmt.OP_SCHEMA, fmt.OP_CHANNEL):
+                out.append(_item(parse_record(iop, ibody)))
+        return out
 
     def _iter(self, topics=None):
         """(topic, type, log, publish, memoryview) for messages of the wanted topics."""
         schemas, channels = {}, {}
+        if self._summary is not None:          # the summary may hold channels the data section lacks
+            schemas = {sid: v[0] for sid, v in self._summary["schemas"].items()}
+            channels = {cid: (v[0], v[1]) for cid, v in self._summary["channels"].items()}
         want_ids = None
         if topics is not None:
             topics = set(topics)
             self._check_topics(topics)
             if self._summary is not None:
-                want_ids = {cid for cid, ch in self._summary["channels"].items() if ch[0] in topics}
+                want_ids = {cid for cid, ch in channels.items() if ch[0] in topics}
         for item in self._records(want_ids):
             kind = item[0]
             if kind == "schema":
-                schemas[item[1]] = item[2]
+                self._define(schemas, "Schema", item[1], item[2])
             elif kind == "channel":
-                channels[item[1]] = (item[3], item[2])
+                self._define(channels, "Channel", item[1], (item[3], item[2]))
             elif kind == "message":
                 ch = channels.get(item[1])
                 if ch is None:
-                    self._problem(f"message on unknown channel id {item[1]} (corrupt file)")
+                    self._problem(f"message on channel id {item[1]}, which no Channel record before it "
+                                  "defines (corrupt file)")
                     continue
                 if topics is None or ch[0] in topics:
                     yield ch[0], schemas.get(ch[1], ""), item[3], item[4], item[5]
 
+    def _define(self, known, what, rid, value):
+        """Record a Schema/Channel definition; the spec repeats them identically, so another
+        definition of a known id is corruption (the first one, e.g. the summary's, is kept)."""
+        if rid in known and known[rid] != value:
+            self._problem(f"{what} id {rid} defined twice differently ({known[rid]} and {value}): "
+                          "corrupt file")
+            return
+        known[rid] = value
+
     def _scan(self):
         if getattr(self, "_scanned", None) is None:
             schemas, channels, counts, meta = {}, {}, {}, []
+            if self._summary is not None:
+                schemas = {sid: v[0] for sid, v in self._summary["schemas"].items()}
+                channels = {cid: (v[0], v[1]) for cid, v in self._summary["channels"].items()}
             start, end = None, 0
             first, last = {}, {}
             for item in self._records():
                 if item[0] == "schema":
-                    schemas[item[1]] = item[2]
+                    self._define(schemas, "Schema", item[1], item[2])
                 elif item[0] == "channel":
-                    channels[item[1]] = (item[3], item[2])
+                    self._define(channels, "Channel", item[1], (item[3], item[2]))
                 elif item[0] == "message":
                     cid, log = item[1], item[3]
                     counts[cid] = counts.get(cid, 0) + 1
@@ -347,9 +482,9 @@ class BagReader:
                     op, body = self._read_record_at(off)
                     if op != fmt.OP_METADATA:
                         raise _Corrupt("metadata index points at another record")
-                    c = fmt.Cursor(body)
-                    out.append((c.string(), c.str_map()))
-                except (_Truncated, _Corrupt, ValueError, UnicodeDecodeError) as err:
+                    rec = parse_record(op, body)
+                    out.append((rec.name, dict(rec.metadata)))
+                except (_Truncated, _Corrupt) as err:
                     self._problem(f"unreadable metadata record at byte {off}: {err}")
             return out
         return self._scan()["metadata"]
@@ -466,54 +601,3 @@ class BagReader:
     def __exit__(self, *exc):
         self.close()
         return False
-
-
-def recover(src, dst, *, overwrite=False, compression="zstd"):
-    """Copy every readable message of a (possibly truncated or damaged) bag into a new,
-    complete bag. Returns {"messages": n, "topics": {topic: n}, "problems": [...],
-    "source_complete": bool}. This is the recovery command (``lgs-wfs recover SRC DST``)."""
-    from .writer import BagWriter
-    if Path(dst).exists() and Path(src).exists() and os.path.samefile(src, dst):
-        raise BagError(f"{dst}: recovery must write a new file, not the damaged source")
-    reader = BagReader(src, strict=False)
-    counts = {}
-    try:
-        schemas, channels = {}, {}
-        with BagWriter(dst, overwrite=overwrite, compression=compression) as w:
-            for item in reader._records():
-                if item[0] == "schema":
-                    schemas[item[1]] = item[2]
-                elif item[0] == "channel":
-                    cid, sid, topic, _, meta = item[1:]
-                    channels[cid] = topic
-                    if topic not in w.topics:
-                        qos = _qos_from_yaml(meta.get("offered_qos_profiles", ""))
-                        try:
-                            try:
-                                w.add_topic(topic, schemas.get(sid, ""), qos=qos)
-                            except ValueError:
-                                w.add_topic(topic, schemas.get(sid, ""))
-                        except ValueError as err:
-                            reader.problems.append(f"topic {topic} skipped: {err}")
-                elif item[0] == "message":
-                    topic = channels.get(item[1])
-                    if topic is None or topic not in w.topics:
-                        continue
-                    w.write(topic, item[5], item[3], item[4], sequence=item[2])
-                    counts[topic] = counts.get(topic, 0) + 1
-    finally:
-        reader.close()
-    return {"messages": sum(counts.values()), "topics": counts, "problems": list(reader.problems),
-            "source_complete": reader.complete}
-
-
-def _qos_from_yaml(text):
-    """Parse offered_qos_profiles back into dicts (None when absent or unreadable)."""
-    try:
-        import yaml
-        data = yaml.safe_load(text) if text else None
-        if isinstance(data, list) and data and all(isinstance(d, dict) for d in data):
-            return data
-    except Exception:
-        pass
-    return None

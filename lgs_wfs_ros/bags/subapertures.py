@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cdr import decode_image, decode_string, encode_image
+from .cdr import decode_image, decode_string, encode_image, encode_string
 from .errors import BagError
 from .reader import IMAGE, STRING, BagReader
 
@@ -133,6 +133,37 @@ class Cutter:
 
     def selection_json(self, frame_topic: str, topic: str | None = None) -> str:
         return json.dumps(self.selection(frame_topic, topic), sort_keys=True)
+
+
+# -- writing ---------------------------------------------------------------------------------
+BLOCKS_QOS = {"history": "keep_last", "depth": 100, "reliability": "reliable", "durability": "volatile"}
+SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
+                 "durability": "transient_local"}
+
+
+def write_blocks(writer, cutter: Cutter, frame_topic: str, cdr, log_ns: int, publish_ns: int | None = None,
+                 *, new_selection: bool) -> list[str]:
+    """Write one frame's blocks into a :class:`~lgs_wfs_ros.bags.BagWriter` as the contract
+    lays them out: when ``new_selection``, first the selection JSON (1 ns before, transient
+    local) and the topics; then the blocks message. The one writer of blocks: the recorder
+    node and :class:`~lgs_wfs_ros.analysis.bagwrite.ContractBagWriter` both call it.
+
+    cdr: the frame's ``sensor_msgs/Image`` CDR; log_ns / publish_ns: the frame's times.
+    Returns the topics written, in order. ValueError (nothing written) for a frame the cutter
+    cannot cut.
+    """
+    msg = cutter.message(cdr)
+    out = blocks_topic(frame_topic)
+    written = []
+    if new_selection:
+        sel = selection_topic(out)
+        writer.add_topic(out, IMAGE, qos=BLOCKS_QOS)           # same topic and type again: a no-op
+        writer.add_topic(sel, STRING, qos=SELECTION_QOS)
+        writer.write(sel, encode_string(cutter.selection_json(frame_topic, out)), max(int(log_ns) - 1, 0))
+        written.append(sel)
+    writer.write(out, msg, log_ns, publish_ns)
+    written.append(out)
+    return written
 
 
 # -- reading ---------------------------------------------------------------------------------
@@ -279,6 +310,6 @@ def read_subapertures(source, topic: str | None = None, selection: int | None = 
     return seg.stamps, seg.indices, seg.blocks
 
 
-__all__ = ["Cutter", "LEAF", "SubapertureSegment", "blocks_topic", "find_blocks_topics",
+__all__ = ["BLOCKS_QOS", "Cutter", "LEAF", "SELECTION_QOS", "SubapertureSegment", "blocks_topic", "find_blocks_topics",
            "parse_indices", "pixel_index", "read_subapertures", "selection_topic", "selections",
-           "subaperture_segments"]
+           "subaperture_segments", "write_blocks"]

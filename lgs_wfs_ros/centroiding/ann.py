@@ -28,9 +28,13 @@ of ones gives each subaperture's total in the same product, and the first layer 
 by it, ``(x @ W) / sum(x) = (x / sum(x)) @ W``, which saves two passes over the stack.
 
 Model lookup (:func:`resolve_model`): an existing path; else a name or relative path
-(with or without ``.onnx``, e.g. ``ann_1k`` or ``paper_prior/ann_1k_paper``) in the
-repository's ``models/``, then ``sys.prefix/share/lgs_wfs_ros/models``,
-then the directories in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated).
+(with or without ``.onnx``, e.g. ``ann_1k`` or ``paper_prior/ann_1k_paper``) in, in order:
+the source tree's ``models/``, the package's share directory through the ament index
+(``share/lgs_wfs_ros/models`` of a colcon install, if ``ament_index_python`` is importable),
+the share directory beside the installed package (found from this file, for a colcon
+install without the index), ``sys.prefix/share/lgs_wfs_ros/models`` (pip), the directories
+in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated) and the user directory
+``${XDG_DATA_HOME:-~/.local/share}/lgs_wfs_ros/models``.
 """
 
 from __future__ import annotations
@@ -50,31 +54,70 @@ DEFAULT_MODEL = "ann_pupil"
 META = "lgs_wfs."
 
 
+class ModelNotFoundError(FileNotFoundError, ValueError):
+    """A model name or path that resolves to no file; the message lists the paths searched."""
+
+
+def _ament_share() -> list[Path]:
+    """share/lgs_wfs_ros/models of the package in the ament index ([] without one)."""
+    try:
+        from ament_index_python.packages import (PackageNotFoundError,
+                                                 get_package_share_directory)
+    except ImportError:
+        return []
+    try:
+        return [Path(get_package_share_directory("lgs_wfs_ros")) / "models"]
+    except (PackageNotFoundError, ValueError, LookupError, OSError):
+        return []
+
+
 def model_dirs() -> list[Path]:
-    """Directories searched for model names, in order."""
-    dirs = [Path(__file__).resolve().parents[2] / "models",
-            Path(sys.prefix) / "share" / "lgs_wfs_ros" / "models"]
+    """Directories searched for model names, in order (duplicates removed)."""
+    here = Path(__file__).resolve()
+    source = here.parents[2] / "models"                            # a source checkout
+    dirs = [source] if source.is_dir() else []
+    dirs += _ament_share()                                         # colcon: the ament index
+    for parent in here.parents:                                    # <prefix>/lib/pythonX/site-packages
+        if parent.name == "lib":
+            dirs.append(parent.parent / "share" / "lgs_wfs_ros" / "models")
+            break
+    dirs.append(Path(sys.prefix) / "share" / "lgs_wfs_ros" / "models")   # pip
     env = os.environ.get("LGS_WFS_MODELS", "")
-    dirs += [Path(d) for d in env.split(os.pathsep) if d]
-    return dirs
+    dirs += [Path(d).expanduser() for d in env.split(os.pathsep) if d]
+    dirs.append(Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+                / "lgs_wfs_ros" / "models")                        # the user's own
+    unique = []
+    for d in dirs:
+        if d not in unique:
+            unique.append(d)
+    return unique
 
 
 def resolve_model(model: str | os.PathLike) -> Path:
-    """Path of a model given as a path or a name. ``ValueError`` if it cannot be found."""
+    """Path of a model given as a path or a name.
+
+    Raises:
+        ModelNotFoundError (a ValueError and a FileNotFoundError): not found; the message
+            lists every path searched.
+        ValueError: not a path or a name.
+    """
     if not isinstance(model, (str, os.PathLike)) or not str(model):
         raise ValueError(f"ann: model must be a file path or a model name, got {model!r}")
     p = Path(model).expanduser()
     if p.is_file():
         return p
     names = [p] if p.suffix == ".onnx" else [p, p.with_name(p.name + ".onnx")]
-    if not p.is_absolute():          # a name, or a path inside a models directory
-        for d in model_dirs():
-            for name in names:
-                if (d / name).is_file():
-                    return d / name
-    searched = ", ".join(str(d) for d in model_dirs())
-    raise ValueError(f"ann: model {str(model)!r} not found (not a file; searched {searched} "
-                     f"and $LGS_WFS_MODELS)")
+    if p.is_absolute():
+        raise ModelNotFoundError(f"ann: model file {str(model)!r} not found (no such file)")
+    tried = []
+    for d in model_dirs():
+        for name in names:
+            tried.append(d / name)
+            if tried[-1].is_file():
+                return tried[-1]
+    raise ModelNotFoundError(f"ann: model {str(model)!r} not found; searched "
+                             + ", ".join(str(d) for d in model_dirs())
+                             + " (add a directory with $LGS_WFS_MODELS)")
 
 
 def read_metadata(meta_map: dict) -> dict:

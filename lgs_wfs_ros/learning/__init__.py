@@ -6,11 +6,11 @@ imported inside the training functions. Modules:
 - :mod:`.dataset`: vectorised, streamed training samples (random 5-Gaussian profiles,
   normal positions, photon noise) in the block's pixel axes.
 - :mod:`.model`: tanh MLPs (torch) and their numpy weights.
-- :mod:`.lm`: Levenberg-Marquardt for the paper's 256-16-2 networks.
 - :mod:`.train`: :func:`train_model` (``lgs-wfs train NAME``).
 - :mod:`.export`: ONNX graphs with the ``lgs_wfs.*`` metadata.
 - :mod:`.recipes`: the recipe of every shipped model.
 - :mod:`.validate`: validation against CoG and CMF, the paper's Table 1 beside ours.
+- :mod:`.card`: the model card (``README.md`` of a model directory) from the metadata.
 
 See ``docs/training.md``.
 """
@@ -20,18 +20,17 @@ from __future__ import annotations
 from .recipes import RECIPES, SHIPPED
 
 
-def train_model(name, out_dir="models", samples=None, seed=None, quick=False, **kwargs):
-    """Retrain model ``name`` from scratch into ``out_dir`` (needs PyTorch).
+def train_model(name, out_dir=None, samples=None, seed=None, quick=False, force=False, **kwargs):
+    """Retrain model ``name`` from scratch into ``out_dir`` (needs the ``train`` extra).
 
-    See :func:`lgs_wfs_ros.learning.train.train_model`.
+    Raises :class:`lgs_wfs_ros.extras.MissingExtra` (one line naming the extra) without
+    PyTorch. See :func:`lgs_wfs_ros.learning.train.train_model`.
     """
-    try:
-        import torch  # noqa: F401
-    except ImportError as exc:   # pragma: no cover - depends on the environment
-        raise RuntimeError("training needs PyTorch: pip install '.[train]' "
-                           "(torch CPU)") from exc
+    from ..extras import require
+    require("torch", "train", "lgs-wfs train")
     from .train import train_model as _train
-    return _train(name, out_dir=out_dir, samples=samples, seed=seed, quick=quick, **kwargs)
+    return _train(name, out_dir=out_dir, samples=samples, seed=seed, quick=quick, force=force,
+                  **kwargs)
 
 
 __all__ = ["train_model", "RECIPES", "SHIPPED"]

@@ -47,18 +47,6 @@ def training_altitude_grid() -> np.ndarray:
     return np.linspace(75e3, 115e3, 801)
 
 
-def turbulence_sigma_px(sensor: Sensor) -> float:
-    """One-axis rms tilt of a subaperture, pixels (classic Kolmogorov G-tilt, circle).
-
-    ``sigma^2 = 0.170 (lambda0 / d)^2 (d / r0)^(5/3)`` rad^2 with ``r0`` at ``lambda0``
-    (the result is achromatic). The default sensor gives 0.464 px; the square-aperture
-    value of :func:`lgs_wfs_ros.optics.turbulence.turbulence_sigma_px` is about 2 % lower.
-    """
-    var = 0.170 * (sensor.r0_wavelength_m / sensor.subap_pitch_m) ** 2 \
-        * (sensor.subap_pitch_m / sensor.r0_m) ** (5.0 / 3.0)
-    return math.sqrt(var) / sensor.pixel_scale_rad
-
-
 @dataclass(frozen=True)
 class DataSpec:
     """What samples to draw.
@@ -328,4 +316,4 @@ def generate(spec: DataSpec, total: int, batch: int = 8192, seed: int = 0, *,
 
 
 __all__ = ["DataSpec", "Samples", "sample", "stream", "generate", "normalise",
-           "subaperture_geometry", "turbulence_sigma_px", "R_SCALE_M"]
+           "subaperture_geometry", "R_SCALE_M"]

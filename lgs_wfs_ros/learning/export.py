@@ -180,6 +180,18 @@ def session(path_or_bytes, threads: int = 1):
     return ort.InferenceSession(src, so, providers=["CPUExecutionProvider"])
 
 
+def predict_samples(path_or_model, s) -> np.ndarray:
+    """``(n, 2)`` outputs of a model (path or ``ModelProto``) on :class:`.dataset.Samples`,
+    in the model's output frame; the conditioning input is fed when the model has one."""
+    src = path_or_model if isinstance(path_or_model, (str, Path)) else \
+        path_or_model.SerializeToString()
+    sess = session(src)
+    meta = read_metadata(path_or_model) if isinstance(path_or_model, (str, Path)) else {}
+    cond = s.cond if meta.get("lgs_wfs.conditioning", "none") != "none" or \
+        len(sess.get_inputs()) > 1 else None
+    return predict(sess, s.images, cond)
+
+
 def predict(sess, images: np.ndarray, cond: np.ndarray | None = None) -> np.ndarray:
     """Run a model on ``(n, p, p)`` or ``(n, p*p)`` images (sum-normalised here).
 

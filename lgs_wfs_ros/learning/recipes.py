@@ -6,7 +6,7 @@ model's ``lgs_wfs.training`` metadata.
 
 Training positions: normal, ``SIGMA_TRAIN_PX`` = 0.6 px per axis, clipped at 4 sigma.
 The turbulence of the reference instrument (r0 = 0.15 m at 500 nm, d = 0.5 m) moves a
-spot by 0.46 px rms per axis (:func:`.dataset.turbulence_sigma_px`); training 30 % wider
+spot by 0.45 px rms per axis (:func:`..optics.turbulence.turbulence_sigma_px`); training 30 % wider
 keeps the tails (|t| ~ 1.5 px, the paper's "limited to one pixel" histogram) well covered
 while still concentrating samples where turbulence puts them.
 """
@@ -36,10 +36,9 @@ class Recipe:
         sigma_px: training position rms per axis, px.
         sizes: layer widths (input first).
         conditioning: "none" | "e_r".
-        optimizer: "adam" | "lm".
+        optimizer: "adam" (recorded in the metadata; the only one).
         samples: training samples (``quick`` runs use ``quick_samples``).
         epochs, batch, lr: Adam settings (cosine-decayed learning rate).
-        lm_samples, lm_iterations: LM settings (fixed batch, Marquardt damping).
         profile_model, mix_fraction: random-profile draw (:func:`.dataset.random_profiles`).
         r_power: pupil models: subaperture draw probability proportional to r^-r_power.
         detectors: pupil models: detector of each sample, drawn uniformly from this tuple
@@ -73,8 +72,6 @@ class Recipe:
     epochs: int = 40
     batch: int = 512
     lr: float = 3e-3
-    lm_samples: int = 12_000
-    lm_iterations: int = 60
     profile_model: str = "mvn"
     mix_fraction: float = 0.5
     r_power: float = 0.0
@@ -95,12 +92,10 @@ class Recipe:
             else f"{self.detector} subaperture at r = {self.radius_m or 14.75:g} m"
         opt = (f"Adam{'W wd ' + format(self.weight_decay, 'g') if self.weight_decay else ''} "
                f"lr {self.lr:g} cosine, batch {self.batch}, {self.epochs} epochs"
-               f"{'' if self.monitor_photons is None else f', weights kept by a {self.monitor_photons:g}-photon monitor'}"
-               if self.optimizer == "adam" else
-               f"Levenberg-Marquardt on {self.lm_samples} samples, {self.lm_iterations} iterations")
-        if self.optimizer == "adam" and self.loss != "mse":
+               f"{'' if self.monitor_photons is None else f', weights kept by a {self.monitor_photons:g}-photon monitor'}")
+        if self.loss != "mse":
             opt += f", loss {self.loss}"
-        if self.optimizer == "adam" and self.noise_penalty_photons is not None:
+        if self.noise_penalty_photons is not None:
             opt += (f", trained on noise-free images only: photon noise enters as its known "
                     f"first-order Poisson variance at {self.noise_penalty_photons:g} photons "
                     f"(penalty J_k Cov(x) J_k^T, Cov(x) = (G diag(x) - x x^T) / N, Bishop 1995), "

@@ -4,8 +4,8 @@
 
 1. streams ``samples`` training samples (:mod:`.dataset`, tqdm progress bar) and a
    held-out monitor set from another seed;
-2. trains the tanh MLP (Adam with a cosine learning rate, or Levenberg-Marquardt for the
-   paper's one-hidden-layer nets: :mod:`.lm`), keeping the weights with the lowest
+2. trains the tanh MLP (Adam with a cosine learning rate; the paper's Levenberg-Marquardt
+   was measured slower and worse, docs/training.md), keeping the weights with the lowest
    monitor error;
 3. exports ONNX with the ``lgs_wfs.*`` metadata (:mod:`.export`);
 4. records the validation errors (:mod:`.validate`) in ``lgs_wfs.training``.
@@ -15,13 +15,14 @@ PyTorch is imported inside the functions only.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..optics.geometry import detector_to_local
+from ..optics.turbulence import turbulence_sigma_px
 from ..sensor import Sensor
 from . import dataset, export, recipes
 from .model import layers_of, linears, mlp, n_parameters
@@ -181,94 +182,86 @@ def fit_adam(net, x, y, xv, yv, *, epochs: int, batch: int, lr: float, seed: int
     return hist
 
 
-def fit_lm(net, x, y, xv, yv, *, samples: int, iterations: int,
-           time_budget_s: float | None = None, progress: bool = True) -> list[dict]:
-    """Levenberg-Marquardt (:func:`.lm.fit`) on the first ``samples`` training samples."""
-    from . import lm
-    return lm.fit(net, x[:samples], y[:samples], iterations=iterations,
-                  time_budget_s=time_budget_s, progress=progress,
-                  callback=lambda it, n: {"monitor_err_px": _mean_error(n, xv, yv)})
-
-
 def training_data(rec: recipes.Recipe, samples: int, seed: int, progress: bool = True) -> dict:
     """Generate the training arrays of a recipe (``x`` already has the input gain)."""
     return dataset.generate(recipe_spec(rec), samples, batch=8192, seed=seed, progress=progress,
                             input_gain=input_gain(rec))
 
 
-def check_set(rec: recipes.Recipe, n: int = CHECK_N, seed: int = CHECK_SEED):
+def check_set(rec: recipes.Recipe, n: int = CHECK_N, seed: int = CHECK_SEED,
+              sigma_px: float | None = None):
     """The small fixed check set of a model: fresh random profiles at the recipe's sensor,
-    1000 photons (noise-free models: also 1000 photons), turbulence-like positions.
+    1000 photons (noise-free models: also 1000 photons), turbulence-like positions of rms
+    ``sigma_px`` per axis (default :func:`..optics.turbulence.turbulence_sigma_px` of the
+    reference sensor).
 
     Returns :class:`.dataset.Samples` (``x`` without gain, as the ONNX model takes it).
     """
-    spec = recipe_spec(rec).replace(photons=1000.0,
-                                    sigma_px=dataset.turbulence_sigma_px(Sensor()))
+    sigma = turbulence_sigma_px(Sensor()) if sigma_px is None else float(sigma_px)
+    spec = recipe_spec(rec).replace(photons=1000.0, sigma_px=sigma)
     return dataset.sample(spec, np.random.default_rng(seed), n)
 
 
-def onnx_predict(path_or_model, s: dataset.Samples) -> np.ndarray:
-    """``(n, 2)`` model outputs on samples, in the model's output frame."""
-    src = path_or_model if isinstance(path_or_model, (str, Path)) else \
-        path_or_model.SerializeToString()
-    sess = export.session(src)
-    meta = export.read_metadata(path_or_model) if isinstance(path_or_model, (str, Path)) else None
-    cond = s.cond if (meta or {}).get("lgs_wfs.conditioning", "none") != "none" or \
-        len(sess.get_inputs()) > 1 else None
-    return export.predict(sess, s.images, cond)
-
-
-def to_local(v: np.ndarray, e_pix: np.ndarray) -> np.ndarray:
-    """Pixel-axes vectors -> local frame (along e, across e)."""
-    ex, ey = e_pix[:, 0], e_pix[:, 1]
-    return np.stack([ex * v[:, 0] + ey * v[:, 1], ex * v[:, 1] - ey * v[:, 0]], axis=1)
-
-
 def check_error(path, rec: recipes.Recipe, n: int = CHECK_N, seed: int = CHECK_SEED) -> float:
-    """Mean Euclidean error (px) of a model on its fixed check set."""
-    s = check_set(rec, n, seed)
-    out = onnx_predict(Path(path), s)
+    """Mean Euclidean error (px) of a model on its fixed check set (the position rms the
+    model's metadata recorded for it, if any)."""
     meta = export.read_metadata(path)
+    sigma = meta.get("lgs_wfs.training", {}).get("check", {}).get("sigma_px")
+    s = check_set(rec, n, seed, sigma)
+    out = export.predict_samples(Path(path), s)
     truth = s.y.astype(np.float64)
     if meta.get("lgs_wfs.output_frame") == "local":
-        truth = to_local(truth, s.e_pix)
+        truth = detector_to_local(truth, s.e_pix)
     return float(np.linalg.norm(out - truth, axis=1).mean())
 
 
-def train_model(name: str, out_dir="models", samples: int | None = None, seed: int | None = None,
-                quick: bool = False, optimizer: str | None = None, validate: bool = True,
-                progress: bool = True, time_budget_s: float | None = None) -> dict:
-    """Retrain a model from scratch and write ``out_dir/NAME.onnx``.
+def target_path(name: str, out_dir=None, force: bool = False) -> Path:
+    """Where ``train_model`` writes model ``name``: ``out_dir/NAME.onnx``, never over an
+    existing file unless ``force``; ``out_dir=None``: a new temporary directory."""
+    recipes.get(name)
+    if out_dir is None:
+        import tempfile
+        out_dir = tempfile.mkdtemp(prefix="lgs-wfs-train-")
+    path = Path(out_dir) / f"{name}.onnx"
+    if path.exists() and not force:
+        raise FileExistsError(f"{path} exists; train into another --out directory, or pass --force "
+                              "to replace it")
+    return path
+
+
+def train_model(name: str, out_dir=None, samples: int | None = None, seed: int | None = None,
+                quick: bool = False, validate: bool = True,
+                progress: bool = True, time_budget_s: float | None = None,
+                force: bool = False) -> dict:
+    """Retrain a model from scratch into ``out_dir/NAME.onnx`` and regenerate the card.
 
     Args:
         name: a recipe name (:data:`.recipes.RECIPES`: ann_1k, ann_noiseless, ann_diag,
             ann_pupil and the ``ref_*`` reference networks).
-        out_dir: output directory (created).
+        out_dir: output directory (created; default a new temporary directory).
         samples: training samples (default the recipe's; ``quick``: 20,000).
         seed: data/initialisation seed (default the recipe's).
         quick: a small fast run (fewer samples and epochs) to check the pipeline.
-        optimizer: "adam" or "lm" (default the recipe's).
-        validate: run :func:`.validate.validate_model` and record its numbers.
+        validate: run :func:`.validate.validate_model` and record its numbers (for
+            ann_pupil also the ring criterion against the ``ref_*`` networks found in
+            ``out_dir``).
         time_budget_s: stop the optimiser after this wall time.
+        force: replace an existing ``out_dir/NAME.onnx`` (else ``FileExistsError``,
+            before any training).
 
     Returns:
-        ``{"path", "recipe", "history", "check_err_px", "validation", "seconds"}``.
+        ``{"path", "recipe", "history", "check_err_px", "validation", "seconds", "card"}``.
     """
+    target = target_path(name, out_dir, force)
+    out_dir = target.parent
     import torch
 
     rec = recipes.get(name)
     t0 = time.perf_counter()
     seed = rec.seed if seed is None else int(seed)
     samples = (rec.quick_samples if quick else rec.samples) if samples is None else int(samples)
-    opt = optimizer or rec.optimizer
-    if opt not in ("adam", "lm"):
-        raise ValueError(f"optimizer must be 'adam' or 'lm', got {opt!r}")
     epochs = max(2, rec.epochs // 8) if quick else rec.epochs
     line = rec.line(samples).replace(f"seed {rec.seed}", f"seed {seed}")
-    if opt != rec.optimizer:
-        line += f" [optimizer overridden: {opt}]"
-    if opt == "lm" and (rec.noise_penalty_photons is not None or rec.loss != "mse"):
-        line += " [Levenberg-Marquardt: plain MSE, no noise penalty]"
     print("recipe:", line, flush=True)
     torch.set_num_threads(1)
 
@@ -281,22 +274,16 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     xv = torch.from_numpy(_features(mon, rec)); yv = torch.from_numpy(mon["y"])
     net = mlp(rec.sizes, seed=seed)
     t_fit = time.perf_counter()
-    if opt == "adam":
-        hist = fit_adam(net, x, y, xv, yv, epochs=epochs, batch=rec.batch, lr=rec.lr, seed=seed,
-                        time_budget_s=time_budget_s, progress=progress,
-                        weight_decay=rec.weight_decay,
-                        noise_penalty_photons=rec.noise_penalty_photons,
-                        pixels=recipe_sensor(rec).pixels ** 2, input_gain=input_gain(rec),
-                        loss=rec.loss)
-    else:
-        hist = fit_lm(net, x, y, xv, yv, samples=min(rec.lm_samples, samples),
-                      iterations=3 if quick else rec.lm_iterations,
-                      time_budget_s=time_budget_s, progress=progress)
+    hist = fit_adam(net, x, y, xv, yv, epochs=epochs, batch=rec.batch, lr=rec.lr, seed=seed,
+                    time_budget_s=time_budget_s, progress=progress, weight_decay=rec.weight_decay,
+                    noise_penalty_photons=rec.noise_penalty_photons,
+                    pixels=recipe_sensor(rec).pixels ** 2, input_gain=input_gain(rec),
+                    loss=rec.loss)
     fit_s = time.perf_counter() - t_fit
 
     rotate = rec.conditioning != "none"
     frame = "local" if (rotate or rec.detector == "polar") else "detector"
-    training = {"recipe": rec.to_dict(), "recipe_line": line, "optimizer": opt, "seed": seed,
+    training = {"recipe": rec.to_dict(), "recipe_line": line, "optimizer": "adam", "seed": seed,
                 "samples": samples, "quick": quick, "parameters": n_parameters(rec.sizes),
                 "sensor": recipe_sensor(rec).to_dict(), "photons": rec.photons,
                 "position_sigma_px": rec.sigma_px, "normalisation":
@@ -305,8 +292,8 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
                 "fit_seconds": round(fit_s, 1),
                 "final_monitor_err_px": min(h["monitor_err_px"] for h in hist),
                 "check": {"seed": CHECK_SEED, "n": CHECK_N, "photons": 1000.0,
-                          "sigma_px": dataset.turbulence_sigma_px(Sensor())}}
-    if opt == "adam" and rec.noise_penalty_photons is not None:
+                          "sigma_px": turbulence_sigma_px(Sensor())}}
+    if rec.noise_penalty_photons is not None:
         training["noise_model"] = (
             f"trained on noise-free images only (training and monitor sets); photon noise "
             f"enters as its known first-order Poisson variance at {rec.noise_penalty_photons:g} "
@@ -318,41 +305,37 @@ def train_model(name: str, out_dir="models", samples: int | None = None, seed: i
     model = export.build_model(layers_of(net), pixels=recipe_sensor(rec).pixels,
                                conditioning=rec.conditioning, input_gain=input_gain(rec),
                                metadata=meta, name=name, rotate_to_local=rotate)
-    path = export.save(model, Path(out_dir) / f"{name}.onnx")
-    training["check"]["mean_err_px"] = check_error(path, rec)
+    tmp = export.save(model, target.with_name(target.name + ".partial"))
+    training["check"]["mean_err_px"] = check_error(tmp, rec)
     validation = None
     if validate:
-        from . import validate as val
-        validation = val.validate_model(path, rec, quick=quick, progress=progress)
-        training["validation"] = validation
-    export.update_metadata(path, {"lgs_wfs.training": training})
+        validation = record_validation(tmp, rec, training, out_dir, quick, progress)
+    export.update_metadata(tmp, {"lgs_wfs.training": training})
+    path = tmp.replace(target)
+    from . import card
+    card_path = card.write(out_dir)
     secs = time.perf_counter() - t0
     print(f"wrote {path}: check error {training['check']['mean_err_px']:.4f} px, "
           f"{secs:.0f} s", flush=True)
     return {"path": str(path), "recipe": line, "history": hist,
             "check_err_px": training["check"]["mean_err_px"], "validation": validation,
-            "seconds": secs}
+            "seconds": secs, "card": str(card_path)}
 
 
-def main(argv=None) -> int:
-    """``python -m lgs_wfs_ros.learning.train NAME [--quick] [--out DIR] [--samples N] ...``"""
-    import argparse
-    ap = argparse.ArgumentParser(description="retrain a shipped network from scratch")
-    ap.add_argument("name", choices=list(recipes.RECIPES) + ["all"])
-    ap.add_argument("--out", default="models")
-    ap.add_argument("--samples", type=int)
-    ap.add_argument("--seed", type=int)
-    ap.add_argument("--optimizer", choices=("adam", "lm"))
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--no-validate", action="store_true")
-    a = ap.parse_args(argv)
-    names = recipes.SHIPPED if a.name == "all" else (a.name,)
-    for n in names:
-        r = train_model(n, a.out, a.samples, a.seed, a.quick, a.optimizer,
-                        validate=not a.no_validate)
-        print(json.dumps({"path": r["path"], "check_err_px": r["check_err_px"]}))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def record_validation(path, rec: recipes.Recipe, training: dict, out_dir, quick: bool,
+                      progress: bool) -> dict:
+    """Validate a freshly written model and put the numbers into ``training`` (in place):
+    the cases of :func:`.validate.validate_model`; for pupil models also the whole-pupil
+    error and, when the ``ref_*`` networks are in ``out_dir``, the ring criterion."""
+    from . import validate as val
+    training["validation"] = val.validate_model(path, rec, quick=quick, progress=progress)
+    if rec.pupil:
+        n = 2000 if quick else val.PUPIL_CRITERION_N
+        training["pupil_all_subapertures_err_px"] = val.pupil_all_subapertures(path, n)
+        refs = [Path(out_dir) / f"{ref}.onnx" for ref, _ in val.RINGS.values()]
+        if all(r.is_file() for r in refs):
+            training["pupil_criterion"] = val.pupil_criterion(path, out_dir, out_dir, n=n)
+        else:
+            training["pupil_criterion_note"] = (f"not evaluated: train the ref_* networks into {out_dir} "
+                                                "first")
+    return training["validation"]

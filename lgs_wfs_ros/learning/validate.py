@@ -8,7 +8,7 @@ Cases (one subaperture, the paper's geometry ``Sensor.paper_single(detector)``):
   (:data:`.dataset.MEASURED_VALIDATION`), each for an equal block of consecutive frames.
 - photons 316 and 1000, photon noise only (the paper's cases).
 - positions: turbulence-like, a time series with the one-axis rms of the reference
-  instrument (0.46 px, :func:`.dataset.turbulence_sigma_px`) and an exponential
+  instrument (0.45 px, :func:`..optics.turbulence.turbulence_sigma_px`, square subaperture) and an exponential
   correlation of ``CORR_FRAMES`` = 35 frames (frozen flow at 10 m/s crosses a 0.5 m
   subaperture in 50 ms = 35 frames at 700 Hz), so the CMF's history reference (mean of the
   last 5 frames, the paper's) sees consecutive frames as it would on the sky.
@@ -30,9 +30,11 @@ import numpy as np
 
 from ..optics import sodium
 from ..optics.detector import expose
+from ..optics.geometry import detector_to_local, layout
 from ..optics.spots import SpotModel
+from ..optics.turbulence import turbulence_sigma_px
 from ..sensor import Sensor
-from . import dataset
+from . import dataset, export
 
 CORR_FRAMES = 35.0
 PHOTONS = (316.0, 1000.0)
@@ -91,10 +93,9 @@ def case_frames(detector: str, photons: float, profile: str, n: int, seed: int =
         xy = (radius_m, 0.0) if detector == "polar" else (radius_m / math.sqrt(2),) * 2
         sensor = Sensor(detector=detector, photons=photons, dtype="float32",
                         single_subaperture_xy_m=xy)
-    from ..optics.geometry import layout
     lay = layout(sensor)
     rng = np.random.default_rng([seed, int(photons), len(profile), 7 if detector == "polar" else 9])
-    t = positions(rng, n, dataset.turbulence_sigma_px(Sensor()))
+    t = positions(rng, n, turbulence_sigma_px(Sensor()))
     h, rho = _profiles(profile, n, rng)
     spots = SpotModel(sensor, np.full(n, lay.r_m[0]), np.tile(lay.e[0], (n, 1)), h, rho,
                       max_shift_px=float(np.abs(t).max()))
@@ -162,7 +163,7 @@ def validate_model(path, rec, quick: bool = False, progress: bool = True) -> dic
                     print(f"  {Path(path).stem} {det:9s} {ph:6.0f} ph {prof:9s}: ann "
                           f"{row['ann']['mean_err_mas']:6.1f} mas, cog {row['cog']['mean_err_mas']:6.1f}, "
                           f"cmf {row['cmf']['mean_err_mas']:6.1f}", flush=True)
-    return {"frames": n, "position_rms_px": dataset.turbulence_sigma_px(Sensor()),
+    return {"frames": n, "position_rms_px": turbulence_sigma_px(Sensor()),
             "position_corr_frames": CORR_FRAMES, "cases": cases}
 
 
@@ -175,20 +176,18 @@ def ring_samples(detector: str, radius_m: float, n: int, seed: int = VAL_SEED + 
     """
     e = np.array([1.0, 0.0]) if detector == "polar" else np.array([1.0, 1.0]) / math.sqrt(2)
     spec = dataset.DataSpec(Sensor.paper_single("polar"), photons=1000.0,
-                            sigma_px=dataset.turbulence_sigma_px(Sensor()))
+                            sigma_px=turbulence_sigma_px(Sensor()))
     return dataset.sample(spec, np.random.default_rng([seed, int(radius_m * 100)]), n,
                           r_m=np.full(n, radius_m), e_pix=np.tile(e, (n, 1)))
 
 
 def sample_errors(path, s: dataset.Samples) -> np.ndarray:
     """``(n,)`` Euclidean errors (px) of a model on pixel-axes samples (direct onnxruntime)."""
-    from . import export
-    from .train import onnx_predict, to_local
     meta = export.read_metadata(path)
-    out = onnx_predict(Path(path), s)
+    out = export.predict_samples(Path(path), s)
     truth = s.y.astype(np.float64)
     if meta.get("lgs_wfs.output_frame") == "local" and meta.get("lgs_wfs.conditioning", "none") != "none":
-        truth = to_local(truth, s.e_pix)       # conditioned models rotate to along/across e
+        truth = detector_to_local(truth, s.e_pix)       # conditioned models rotate to along/across e
     return np.linalg.norm(out - truth, axis=1)
 
 
@@ -230,102 +229,17 @@ def pupil_criterion(pupil_path, model_dir="models", ref_dir="models",
     return rows
 
 
-__all__ = ["validate_model", "pupil_criterion", "sample_errors", "PUPIL_CRITERION_N", "case_frames", "positions", "errors",
-           "PAPER_TABLE1_MAS", "RINGS"]
-
-
-# ------------------------------------------------------------------ models/README.md
-def readme_table(model_dir="models") -> str:
-    """Markdown tables of the shipped models and their recorded validation errors."""
-    from . import export, recipes
-    lines = ["| model | detector | network | trained on | check error (px) |",
-             "|---|---|---|---|---|"]
-    val_lines = ["| model | detector | photons | profile | ANN (mas) | CoG (mas) | CMF (mas) | paper ANN / CoG / CMF (mas) |",
-                 "|---|---|---|---|---|---|---|---|"]
-    for name in recipes.SHIPPED:
-        path = Path(model_dir) / f"{name}.onnx"
-        if not path.is_file():
-            continue
-        tr = export.read_metadata(path).get("lgs_wfs.training", {})
-        rec = recipes.get(name)
-        ph = "noise-free" if rec.photons is None else f"{rec.photons:g} photons"
-        lines.append(f"| `{name}` | {rec.detector} | {'-'.join(map(str, rec.sizes))} "
-                     f"({tr.get('parameters', '?')} weights), {tr.get('optimizer', '?')} | "
-                     f"{tr.get('samples', '?')} samples, {ph} | "
-                     f"{tr.get('check', {}).get('mean_err_px', float('nan')):.4f} |")
-        for c in (tr.get("validation") or {}).get("cases", []):
-            paper = c.get("paper_mas")
-            ps = f"{paper['ann']:.0f} / {paper['cog']:.0f} / {paper['cmf']:.0f}" if paper else ""
-            val_lines.append(f"| `{name}` | {c['detector']} | {c['photons']:g} | {c['profile']} | "
-                             f"{c['ann']['mean_err_mas']:.1f} | {c['cog']['mean_err_mas']:.1f} | "
-                             f"{c['cmf']['mean_err_mas']:.1f} | {ps} |")
-    return "\n".join(lines) + "\n\n" + "\n".join(val_lines) + "\n"
-
-
 def pupil_all_subapertures(pupil_path, n: int = 20_000, seed: int = VAL_SEED + 2) -> dict:
     """ann_pupil's mean error (px) over random valid subapertures of the default pupil,
     per detector, 1000 photons, fresh random (mvn) profiles, turbulence-like positions."""
     out = {}
     for det in ("polar", "cartesian"):
         spec = dataset.DataSpec(Sensor(), photons=1000.0, pupil=True, detectors=(det,),
-                                conditioning="e_r", sigma_px=dataset.turbulence_sigma_px(Sensor()))
+                                conditioning="e_r", sigma_px=turbulence_sigma_px(Sensor()))
         s = dataset.sample(spec, np.random.default_rng([seed, len(det)]), n)
         out[det] = pixel_errors(pupil_path, s)
     return out
 
 
-def finalize(model_dir="models", ref_dir="/tmp/runs/refs", quick: bool = False,
-             names=None) -> dict:
-    """Validate shipped models (default all), record the numbers in their metadata."""
-    from . import export, recipes
-    results = {}
-    for name in names or recipes.SHIPPED:
-        path = Path(model_dir) / f"{name}.onnx"
-        if not path.is_file():
-            continue
-        tr = export.read_metadata(path)["lgs_wfs.training"]
-        tr["validation"] = validate_model(path, recipes.get(name), quick=quick)
-        if name == "ann_pupil" and Path(ref_dir).is_dir():
-            tr["pupil_criterion"] = pupil_criterion(path, model_dir, ref_dir,
-                                                    n=2000 if quick else PUPIL_CRITERION_N)
-            tr["pupil_all_subapertures_err_px"] = pupil_all_subapertures(path, 2000 if quick else 20_000)
-        export.update_metadata(path, {"lgs_wfs.training": tr})
-        results[name] = tr
-    return results
-
-
-def pupil_table(model_dir="models") -> str:
-    """Markdown table of ann_pupil's ring-by-ring criterion (from its metadata)."""
-    from . import export
-    path = Path(model_dir) / "ann_pupil.onnx"
-    if not path.is_file():
-        return ""
-    tr = export.read_metadata(path).get("lgs_wfs.training", {})
-    rows = tr.get("pupil_criterion") or []
-    lines = ["| detector | ring | r (m) | ann_pupil (px) | dedicated 256-16-2 (px) | ratio (<= 1.1) |",
-             "|---|---|---|---|---|---|"]
-    for r in rows:
-        se = f" +- {r['ratio_se']:.3f}" if "ratio_se" in r else ""
-        lines.append(f"| {r['detector']} | {r['ring']} | {r['radius_m']:g} | {r['pupil_err_px']:.4f} | "
-                     f"{r['reference_err_px']:.4f} | {r['ratio']:.3f}{se} |")
-    if rows and "n" in rows[0]:
-        lines.append("")
-        lines.append(f"{rows[0]['n']:,} fresh random-profile samples per ring, 1000 photons, "
-                     "turbulence-like positions, the same samples for both networks; +- is the "
-                     "paired standard error of the ratio.")
-    allv = tr.get("pupil_all_subapertures_err_px")
-    if allv:
-        lines.append("")
-        lines.append("Mean error over random valid subapertures of the whole pupil, 1000 photons: "
-                     + ", ".join(f"{k} {v:.4f} px ({v * 500:.1f} mas)" for k, v in allv.items()) + ".")
-    return "\n".join(lines) + "\n"
-
-
-def write_readme(model_dir="models", header: str = "", footer: str = "") -> Path:
-    """Write ``model_dir/README.md`` from the models' metadata (plus fixed text)."""
-    text = (header + "\n## Shipped models\n\n" + readme_table(model_dir)
-            + "\n## Full-pupil criterion (ann_pupil vs a network trained for that subaperture)\n\n"
-            + pupil_table(model_dir) + "\n" + footer)
-    p = Path(model_dir) / "README.md"
-    p.write_text(text)
-    return p
+__all__ = ["validate_model", "pupil_criterion", "pupil_all_subapertures", "sample_errors",
+           "PUPIL_CRITERION_N", "case_frames", "positions", "errors", "PAPER_TABLE1_MAS", "RINGS"]

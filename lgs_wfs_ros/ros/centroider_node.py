@@ -5,27 +5,44 @@ Subscribes to ``frame`` (raw CDR, decoded with numpy, no copy) and ``sensor``; p
 Parameter changes are validated by building the new centroider in the on-set callback (a change
 that cannot apply is refused with the reason and the old algorithm stays); the post-set callback
 swaps it in, so it applies from the next frame.
+
+Parameters: ``algorithm`` and one typed parameter per algorithm option, ``<algorithm>.<option>``
+(``cmf.reference``, ``ann.model``, ...), generated from ``centroiding.options.OPTIONS`` with
+its descriptions, ranges, choices and read-only flags; the centroider is
+``options.build(algorithm, sensor, options.from_parameters(algorithm, values))``, the same
+call replay and the Python API make. Also publishes ``slopes_picture`` (rgb8, x and y maps
+side by side, a few Hz) and ``slope_error`` (Vector3Stamped: rms error against
+``true_slopes`` in x, y and total, pixels, ~10 Hz), each only while someone subscribes, and
+its state on ``/diagnostics``.
+A centroider that cannot be built (model missing, a sensor it cannot run on) leaves the node
+running, its cause logged once and on ``/diagnostics``, until a parameter or sensor fixes it.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import threading
 import time
 
 import numpy as np
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
-from ..centroiding import ALGORITHMS, make_centroider
+from ..centroiding import ALGORITHMS, options
+from ..centroiding.ann import ModelNotFoundError
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from .spinning import DRAIN, run_node, take_queued
-from . import parameters, qos
+from . import health, parameters, picture, qos
 
-OPTION_PARAMS = ("model", "cmf_update_period", "cmf_reference", "tcog_threshold", "options")
+
+def option_rows() -> dict:
+    """Every algorithm option as ``{"<algorithm>.<option>": Option}`` (centroiding.options)."""
+    return {opt.parameter: opt for rows in options.OPTIONS.values() for opt in rows}
 
 
 class FrameCounters:
@@ -48,42 +65,64 @@ class CentroiderNode(Node):
     def __init__(self, **kwargs):
         kwargs.setdefault("namespace", "wfs")
         super().__init__("centroider_node", **kwargs)
-        parameters.declare(self, "algorithm", "cog", "Centroiding algorithm.", choices=ALGORITHMS)
-        parameters.declare(self, "model", "", "ann: ONNX model path or name in models/ "
-                           "(empty: the default model).")
-        parameters.declare(self, "cmf_update_period", 1, "cmf: frames between filter updates.",
-                           low=1, high=100000)
-        parameters.declare(self, "cmf_reference", "history", "cmf: where the reference comes from.",
-                           choices=("history", "model"))
-        parameters.declare(self, "tcog_threshold", 0.0, "tcog: threshold in counts.",
-                           low=0.0, high=65535.0)
-        parameters.declare(self, "options", "{}", "Extra algorithm options as a JSON object.")
+        parameters.declare(self, "algorithm", "cog", "Centroiding algorithm; its options are "
+                           "the <algorithm>.<option> parameters.", choices=ALGORITHMS)
+        self.option_rows = option_rows()
+        for opt in self.option_rows.values():
+            parameters.declare_option(self, opt)
         parameters.declare(self, "sensor_json", "", "Sensor description to use until one "
                            "arrives on the sensor topic (empty: the default sensor).")
-        parameters.declare(self, "log_period_s", 5.0, "Seconds between counter log lines.",
+        parameters.declare(self, "log_period_s", 10.0, "Seconds between counter log lines "
+                           "(written only when the counters changed).",
                            low=0.1, high=3600.0)
+        parameters.declare(self, "picture_hz", 5.0, "Rate of the slopes_picture image "
+                           "(rgb8: x and y slope maps side by side; 0: off), Hz.",
+                           low=0.0, high=100.0)
+        parameters.declare(self, "error_hz", 10.0, "Rate of slope_error (rms of slopes - "
+                           "true_slopes over the valid subapertures, pixels: vector x, y and "
+                           "z = total), computed only while someone subscribes; 0: off), Hz.",
+                           low=0.0, high=1000.0)
+        parameters.declare(self, "picture_range_px", 2.0, "Slope shown at full colour in "
+                           "slopes_picture (blue -range, white 0, red +range), pixels.",
+                           low=1e-3, high=100.0)
 
         self.counters = FrameCounters()
+        self.health = health.Health(self, self._diagnostic_values)
         self._lock = threading.Lock()
         self._pending = None
         self._last_stamp = None
+        self._sensor_received = False
+        self._next_picture = 0.0
+        self._last_line = ""
         self.sensor = self._initial_sensor()
         self.layout = geometry.layout(self.sensor)
         self.centroider = None
+        self.problem = ""        # why there is no centroider ("" when there is one)
         try:
             self.centroider = self._build(self._settings())
+        except ModelNotFoundError as exc:
+            self._no_centroider(f"model missing: {exc}")
         except ValueError as exc:
             if self.get_parameter("algorithm").value not in ALGORITHMS:
                 raise
             # e.g. a polar-only model on the default (cartesian) sensor: the real sensor
             # description usually arrives on the sensor topic a moment later.
-            self.get_logger().warning(f"waiting for a sensor this algorithm can run on: {exc}")
+            self._no_centroider(f"{self.get_parameter('algorithm').value} cannot run on the "
+                                f"default sensor, waiting for one on the sensor topic: {exc}",
+                                health.WARN)
 
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
 
         self._slopes_pub = self.create_publisher(Image, "slopes", qos.SLOPES)
+        self._picture_pub = self.create_publisher(Image, "slopes_picture", qos.PICTURE)
         self._desc_pub = self.create_publisher(String, "centroider", qos.LATCHED)
+        self._error_pub = self.create_publisher(Vector3Stamped, "slope_error", qos.SLOPES)
+        self._truth_sub = None
+        self._truth = None                           # (stamp, grid) waiting for its slopes
+        self._recent = collections.OrderedDict()     # stamp -> slopes grid, while measured
+        self._next_error = 0.0
+        self.create_timer(1.0, self._follow_error_subscribers)
         self._frame_sub = None
         self._subscribe_frames(self.sensor)
         self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
@@ -96,29 +135,19 @@ class CentroiderNode(Node):
         text = self.get_parameter("sensor_json").value
         return Sensor.from_json(text) if text else Sensor()
 
+    def _no_centroider(self, why: str, level=health.ERROR):
+        self.problem = why
+        self.health.set_state(level, f"no centroider: {why}")
+
     def _settings(self, overrides: dict | None = None) -> dict:
-        s = parameters.values(self, ("algorithm",) + OPTION_PARAMS)
+        s = parameters.values(self, ("algorithm",) + tuple(self.option_rows))
         s.update(overrides or {})
         return s
 
     def _build(self, settings: dict, sensor: Sensor | None = None):
         """Make the centroider the settings ask for; ValueError with the reason if impossible."""
-        sensor = sensor or self.sensor
         name = settings["algorithm"]
-        try:
-            options = json.loads(settings["options"] or "{}")
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"options is not a JSON object: {exc}") from exc
-        if not isinstance(options, dict):
-            raise ValueError("options must be a JSON object")
-        if name == "ann" and settings["model"]:
-            options.setdefault("model", settings["model"])
-        elif name == "cmf":
-            options.setdefault("update_period", int(settings["cmf_update_period"]))
-            options.setdefault("reference", settings["cmf_reference"])
-        elif name == "tcog" and settings["tcog_threshold"] > 0:
-            options.setdefault("threshold", float(settings["tcog_threshold"]))
-        return make_centroider(name, sensor, **options)
+        return options.build(name, sensor or self.sensor, options.from_parameters(name, settings))
 
     def _validate(self, params):
         changes = {p.name: p.value for p in params}
@@ -130,7 +159,13 @@ class CentroiderNode(Node):
                 Sensor.from_json(changes["sensor_json"])
             except (SensorError, TypeError) as exc:
                 return parameters.refuse(str(exc))
-        if set(changes) & ({"algorithm"} | set(OPTION_PARAMS)):
+        try:
+            for name in set(changes) & set(self.option_rows):
+                options.coerce(self.option_rows[name], changes[name])
+        except ValueError as exc:
+            return parameters.refuse(str(exc))
+        algorithm = changes.get("algorithm", self.get_parameter("algorithm").value)
+        if "algorithm" in changes or any(n.startswith(algorithm + ".") for n in changes):
             try:
                 self._pending = self._build(self._settings(changes))
             except (ValueError, OSError, RuntimeError) as exc:
@@ -142,6 +177,7 @@ class CentroiderNode(Node):
         if self._pending is not None:
             with self._lock:
                 self.centroider, self._pending = self._pending, None
+            self.problem = ""
             self._announce("parameter change")
 
     def _announce(self, why: str):
@@ -154,24 +190,30 @@ class CentroiderNode(Node):
         desc.update(reason=why, time_ns=time.time_ns(), sensor_grid=self.sensor.grid)
         self._desc_pub.publish(String(data=json.dumps(desc, default=str)))
         self.get_logger().info(f"centroider: {desc.get('algorithm')} ({why})")
+        self.health.set_state(health.OK, "running", log=False)
 
     def _on_sensor(self, msg: String):
         try:
             sensor = Sensor.from_json(msg.data)
         except (SensorError, TypeError) as exc:
-            self.get_logger().error(f"ignoring an invalid sensor description: {exc}")
+            self.health.note("invalid sensor description ignored", str(exc), health.ERROR)
             return
-        if sensor == self.sensor:
+        self._sensor_received = True
+        if sensor == self.sensor and self.centroider is not None:
             return
         try:
             centroider = self._build(self._settings(), sensor)
+        except ModelNotFoundError as exc:
+            self._no_centroider(f"model missing: {exc}")
+            return
         except (ValueError, OSError, RuntimeError) as exc:
-            self.get_logger().error(f"new sensor arrived but the algorithm cannot run on it: {exc}")
+            self._no_centroider(f"the algorithm cannot run on the sensor received: {exc}")
             return
         self._subscribe_frames(sensor)
         with self._lock:
             self.sensor, self.layout, self.centroider = sensor, geometry.layout(sensor), centroider
             self._last_stamp = None
+        self.problem = ""
         self._announce("new sensor")
 
     def _subscribe_frames(self, sensor: Sensor):
@@ -186,10 +228,11 @@ class CentroiderNode(Node):
                                                    raw=True)
 
     # -- frames ---------------------------------------------------------------------
-    def _reject(self, reason: str):
+    def _reject(self, condition: str, detail: str = "", level=health.WARN):
+        """Count a rejected frame; its condition is logged the first time only."""
         self.counters.rejected += 1
-        self.counters.last_reason = reason
-        self.get_logger().warning(f"frame rejected: {reason}", throttle_duration_sec=2.0)
+        self.counters.last_reason = condition + (f": {detail}" if detail else "")
+        self.health.note(f"frames rejected, {condition}", detail, level)
 
     def _on_frame(self, cdr: bytes):
         """One frame from the executor, then up to DRAIN more taken directly: rclpy's executor
@@ -219,12 +262,66 @@ class CentroiderNode(Node):
                     try:
                         s = centroider.centroid(image)
                     except Exception as exc:   # an algorithm fault costs this frame, not the node
-                        self._reject(f"{centroider.name} failed on this frame: {exc!r}")
+                        self._reject(f"{centroider.name} failed on a frame", repr(exc), health.ERROR)
                         continue
                 results.append((stamp_ns, geometry.slopes_to_grid(s, layout)))
         for stamp_ns, grid in results:
             self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
             self.counters.processed += 1
+        if results:
+            self._maybe_picture(*results[-1])
+            if self._truth_sub is not None:
+                for stamp_ns, grid in results:
+                    self._recent[stamp_ns] = grid
+                while len(self._recent) > 64:
+                    self._recent.popitem(last=False)
+                self._publish_error()
+
+    # -- error against the truth, for plots (only while slope_error has subscribers) ------
+    def _follow_error_subscribers(self):
+        """Subscribe to true_slopes while slope_error has subscribers (a 700 Hz callback
+        costs CPU nobody would use otherwise)."""
+        want = (self.get_parameter("error_hz").value > 0
+                and self._error_pub.get_subscription_count() > 0)
+        if want and self._truth_sub is None:
+            self._truth_sub = self.create_subscription(Image, "true_slopes", self._on_truth,
+                                                       qos.SLOPES, raw=True)
+        elif not want and self._truth_sub is not None:
+            self.destroy_subscription(self._truth_sub)
+            self._truth_sub, self._truth = None, None
+            self._recent.clear()
+
+    def _on_truth(self, cdr: bytes):
+        if time.monotonic() < self._next_error:
+            return
+        try:
+            stamp_ns, _, _, truth = bags.decode_image(cdr)
+        except Exception as exc:
+            self.health.note("undecodable true_slopes ignored", str(exc))
+            return
+        self._truth = (stamp_ns, np.array(truth))
+        self._publish_error()
+
+    def _publish_error(self):
+        """rms (slopes - truth) of the waiting truth's frame, once its slopes exist."""
+        if self._truth is None or self._truth[0] not in self._recent:
+            return
+        stamp_ns, truth = self._truth
+        grid = self._recent[stamp_ns]
+        self._truth = None
+        if grid.shape != truth.shape:
+            return
+        d = grid - truth
+        d = d[np.isfinite(d).all(axis=-1)]          # (n valid, 2)
+        if not len(d):
+            return
+        ex, ey = np.sqrt(np.mean(d ** 2, axis=0)).tolist()
+        msg = Vector3Stamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 10**9)
+        msg.header.frame_id = "wfs"
+        msg.vector.x, msg.vector.y, msg.vector.z = ex, ey, float(np.hypot(ex, ey))
+        self._error_pub.publish(msg)
+        self._next_error = time.monotonic() + 1.0 / self.get_parameter("error_hz").value
 
     def _accept(self, cdr: bytes):
         """Decode and check one frame: ``(stamp_ns, image)``, or None (counted as rejected)."""
@@ -232,36 +329,64 @@ class CentroiderNode(Node):
         try:
             stamp_ns, _frame_id, encoding, image = bags.decode_image(cdr)
         except Exception as exc:
-            self._reject(f"undecodable Image: {exc}")
+            self._reject("undecodable Image", str(exc))
             return None
         if encoding not in ("mono16", "32FC1"):
-            self._reject(f"encoding {encoding!r}, expected mono16 or 32FC1")
+            self._reject(f"encoding {encoding}", "expected mono16 or 32FC1")
             return None
         with self._lock:
             if image.shape != self.sensor.frame_shape:
-                self._reject(f"shape {image.shape}, the sensor expects {self.sensor.frame_shape}")
+                if not self._sensor_received:
+                    self._reject("frames before the sensor description",
+                                 f"shape {image.shape}; waiting for the sensor topic", health.OK)
+                else:
+                    self._reject(f"shape {image.shape}",
+                                 f"the sensor expects {self.sensor.frame_shape}")
                 return None
             if self._last_stamp is not None and stamp_ns <= self._last_stamp:
-                self._reject(f"stamp {stamp_ns} not after the previous {self._last_stamp}")
+                self._reject("stamp not after the previous one",
+                             f"{stamp_ns} after {self._last_stamp}")
                 return None
             if self._last_stamp is not None:
                 period_ns = 1e9 / self.sensor.frame_rate_hz
                 self.counters.dropped += max(0, int(round((stamp_ns - self._last_stamp) / period_ns)) - 1)
             if self.centroider is None:
-                self._reject("no centroider yet: the algorithm cannot run on the current sensor")
+                self._reject("no centroider", self.problem, health.OK)
                 return None
             self._last_stamp = stamp_ns
         return stamp_ns, image
 
+    def _maybe_picture(self, stamp_ns: int, grid: np.ndarray):
+        """Publish ``slopes_picture`` (rgb8) at ``picture_hz`` at most, if anyone listens."""
+        hz = self.get_parameter("picture_hz").value
+        now = time.monotonic()
+        if hz <= 0 or now < self._next_picture or not self._picture_pub.get_subscription_count():
+            return
+        self._next_picture = now + 1.0 / hz
+        rgb = picture.slopes_picture(grid, self.get_parameter("picture_range_px").value)
+        msg = Image(height=rgb.shape[0], width=rgb.shape[1], encoding="rgb8", is_bigendian=0,
+                    step=rgb.shape[1] * 3, data=rgb.tobytes())
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 10**9)
+        msg.header.frame_id = "wfs"
+        self._picture_pub.publish(msg)
+
+    def _diagnostic_values(self) -> dict:
+        return {**self.counters.as_dict(), "algorithm": self.get_parameter("algorithm").value,
+                "frame_shape": "x".join(map(str, self.sensor.frame_shape))}
+
     def _log_counters(self):
+        """The counters every log_period_s, when they changed (silent while idle)."""
         c = self.counters
-        self.get_logger().info(
-            f"frames received {c.received}, processed {c.processed}, dropped {c.dropped}, "
-            f"rejected {c.rejected}" + (f" (last: {c.last_reason})" if c.rejected else ""))
+        extra = self.health.summary()
+        line = (f"frames received {c.received}, processed {c.processed}, dropped {c.dropped}, "
+                f"rejected {c.rejected}" + (f" ({extra})" if extra else ""))
+        if c.received and line != self._last_line:
+            self.get_logger().info(line)
+        self._last_line = line
 
 
 def _final_counts(node) -> None:
-    print(f"centroider_node: final counts {json.dumps(node.counters.as_dict())}", flush=True)
+    node.get_logger().info(f"final counts {json.dumps(node.counters.as_dict())}")
 
 
 def main(args=None):

@@ -56,14 +56,15 @@ def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, s
     for name in algorithms:
         params = {"algorithm": name}
         if name == "ann":
-            params["model"] = _ann_model(case)
+            params["ann.model"] = _ann_model(case)
         elif name == "cmf":
             # What a real system can run at full rate: a reference from the spot model and
             # model noise weighting. The paper's idealised "history" reference follows the
             # moving spot and so reports ~0 under turbulence (docs/reproduction.md).
-            params.update(cmf_reference="model", options='{"weighting": "model"}')
+            params.update({"cmf.reference": "model", "cmf.weighting": "model"})
         specs.append(NodeSpec("centroider_node", name, params,
-                              {"frame": "/wfs/frame", "sensor": "/wfs/sensor"}))
+                              {"frame": "/wfs/frame", "sensor": "/wfs/sensor",
+                               "true_slopes": "/wfs/true_slopes"}))
     specs.append(NodeSpec("simulator_node", "wfs", sim))
     return specs
 

@@ -24,7 +24,7 @@ from std_msgs.msg import String
 from .. import bags
 from ..sensor import Sensor, SensorError
 from .spinning import run_node
-from . import parameters, qos
+from . import health, parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
 REPLAYED = ("frame", "true_slopes", "sensor")
@@ -99,6 +99,8 @@ class PlayerNode(Node):
         self._pass = 0
         self._span_ns = 0          # bag length in stamps (first pass), for restamp_loops
         self._cache = None         # [(kind, cdr)] of a looped bag that fits in cache_mb
+        self.health = health.Health(self, lambda: {**self.published, "pass": self._pass})
+        self.health.set_state(health.OK, f"playing {path}")
         self._thread = threading.Thread(target=self._play, name="player", daemon=True)
         self._thread.start()
 
@@ -151,7 +153,7 @@ class PlayerNode(Node):
         try:
             self._publish_first_sensor()
         except bags.BagError as exc:
-            self.get_logger().error(f"stopped: {exc}")
+            self.health.set_state(health.ERROR, f"stopped: {exc}")
             self.finished.set()
             return
         self._stop.wait(self.get_parameter("start_delay_s").value)
@@ -162,15 +164,15 @@ class PlayerNode(Node):
                 if not self.get_parameter("loop").value:
                     break
         except bags.BagError as exc:
-            self.get_logger().error(f"stopped: {exc}")
+            self.health.set_state(health.ERROR, f"stopped: {exc}")
         except Exception:
             # SIGINT/SIGTERM shut the context down while this thread was publishing: the
             # publish fails, which here only means stop (anything else is a real error)
             if self.context.ok():
                 self.finished.set()
                 raise
-        if self.context.ok():
-            self.get_logger().info(f"played {self.published}")
+        if self.context.ok() and not self._stop.is_set():
+            self.health.set_state(health.OK, f"played {self.published}")
         self.finished.set()
 
     def _play_once(self):
@@ -243,7 +245,7 @@ class PlayerNode(Node):
 
 def _finish(node) -> None:
     node.stop()
-    print(f"player_node: final counts {json.dumps(node.published)}", flush=True)
+    node.get_logger().info(f"final counts {json.dumps(node.published)}")
 
 
 def main(args=None):

@@ -31,6 +31,10 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+# the slopes picture: only the latest matters (reliable, so rviz's default subscription matches)
+PICTURE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
 BY_NAME = {"frame": FRAME, "true_slopes": SLOPES, "slopes": SLOPES,
            "sensor": LATCHED, "centroider": LATCHED}
 TYPES = {"frame": "sensor_msgs/msg/Image", "true_slopes": "sensor_msgs/msg/Image",

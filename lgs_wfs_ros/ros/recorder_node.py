@@ -22,6 +22,7 @@ when the disk fills up (reported; what was written stays readable).
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -36,19 +37,21 @@ from ..bags import subapertures as subaps
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from .spinning import run_node, take_queued
-from . import parameters, qos
+from . import health, parameters, qos
 
 MSG_CLASSES = {"sensor_msgs/msg/Image": Image, "std_msgs/msg/String": String}
-DEFAULT_TOPICS = ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor"]
-BLOCKS_QOS = {"history": "keep_last", "depth": 100, "reliability": "reliable", "durability": "volatile"}
-SELECTION_QOS = {"history": "keep_last", "depth": 1, "reliability": "reliable",
-                 "durability": "transient_local"}
+#: relative names resolve in the node's namespace (/wfs by default) and follow remappings
+DEFAULT_TOPICS = ["frame", "true_slopes", "sensor"]
 
 # The recorder is not latency-critical: it lets messages gather for 2 ms between executor
 # rounds and takes up to 256 per topic per round (at 6 kHz single-subaperture the executor's
 # per-round Python, not the writing, was most of its CPU).
 SPIN_PAUSE_S = 0.002
 RECORDER_DRAIN = 256
+# On SIGINT/SIGTERM the recorder keeps recording this long before closing the bag: a launch
+# file interrupts every node at once, and the producers' last messages (flushed by their own
+# shutdown, ros/spinning.py) are still on their way.
+STOP_LINGER_S = 1.0
 
 
 def _namespace(topic: str) -> str:
@@ -70,12 +73,14 @@ def default_output() -> str:
 
 class RecorderNode(Node):
     def __init__(self, **kwargs):
+        kwargs.setdefault("namespace", "wfs")
         super().__init__("recorder_node", **kwargs)
         parameters.declare(self, "output", default_output(), "Path of the MCAP bag to write.",
                            read_only=True)
         parameters.declare(self, "overwrite", False, "Replace an existing output file.",
                            read_only=True)
-        parameters.declare(self, "topics", DEFAULT_TOPICS, "Topics to record (absolute names).",
+        parameters.declare(self, "topics", DEFAULT_TOPICS, "Topics to record (relative names resolve "
+                           "in the node's namespace and follow remappings).",
                            read_only=True)
         parameters.declare(self, "discover", True, "Also record contract topics found in the "
                            "graph (checked every second).")
@@ -111,6 +116,8 @@ class RecorderNode(Node):
         self.writer = bags.BagWriter(out, overwrite=p["overwrite"], chunk_size=p["chunk_kb"] * 1024,
                                      compression=None if p["compression"] == "none" else p["compression"])
         self.recorded: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}          # topic -> messages lost before the recorder
+        self._sequence: dict[str, int] = {}     # topic -> last publication sequence number
         self.frames_seen = 0
         self.failed = ""
         self.done = False        # the bag is closed
@@ -125,11 +132,19 @@ class RecorderNode(Node):
         self._kept = {}          # frame topic -> frames kept (for full_frame_every)
         self.blocks_skipped = 0
         self.skip_reason = ""
+        self.health = health.Health(self, self._diagnostic_values)
         for topic in self.get_parameter("topics").value:
+            topic = self.resolve_topic_name(topic)
             self._subscribe(topic, qos.TYPES.get(topic.rsplit("/", 1)[-1]))
         self._discover_timer = self.create_timer(1.0, self._discover)
         self._discover()
-        self.get_logger().info(f"recording to {out}")
+        self.health.set_state(health.OK, f"recording to {out}")
+
+    def _diagnostic_values(self) -> dict:
+        return {"output": str(self.path), "frames_seen": self.frames_seen,
+                **{f"lost before the recorder {t}": n for t, n in sorted(self.gaps.items())},
+                "blocks_skipped": self.blocks_skipped,
+                **{f"recorded {t}": n for t, n in sorted(self.recorded.items())}}
 
     def _validate(self, params):
         for p in params:
@@ -220,9 +235,25 @@ class RecorderNode(Node):
         self._create_subscription(topic, qos.TYPES["frame"], profile)
         self.get_logger().info(f"{topic}: frame queue resized to {profile.depth} for its sensor")
 
+    def _count_gap(self, topic, info) -> None:
+        """Messages of ``topic`` that never reached this subscription: gaps in the
+        publisher's sequence numbers (a KEEP_LAST queue overwritten while the recorder
+        stalled, or a writer gone before delivering). Counted per topic, for one publisher
+        per topic (the contract's graphs); a sequence going back (a new publisher) restarts."""
+        seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not seq:
+            return
+        last = self._sequence.get(topic)
+        if last is not None and seq > last + 1:
+            self.gaps[topic] = self.gaps.get(topic, 0) + seq - last - 1
+            self.health.note(f"messages lost before the recorder on {topic}",
+                             f"publication sequence jumped from {last} to {seq}")
+        self._sequence[topic] = seq
+
     def _on_message(self, topic, kind, cdr, info):
         if self.closing:
             return
+        self._count_gap(topic, info)
         if kind == "frame":
             if self.budget_reached:
                 return
@@ -295,24 +326,16 @@ class RecorderNode(Node):
             self._skip(f"{topic}: {entry[3]}")
             return
         try:
-            msg = cutter.message(cdr)
+            written = subaps.write_blocks(self.writer, cutter, topic, cdr, received, source,
+                                          new_selection=not entry[4])
         except ValueError as exc:
             self._skip(f"{topic}: {exc}")
             return
-        out = subaps.blocks_topic(topic)
+        for t in written:
+            self.recorded[t] = self.recorded.get(t, 0) + 1
         if not entry[4]:
-            sel = subaps.selection_topic(out)
-            for t, ty, q in ((out, qos.TYPES["frame"], BLOCKS_QOS), (sel, qos.TYPES["sensor"], SELECTION_QOS)):
-                if t not in self.recorded:
-                    self.writer.add_topic(t, ty, qos=q)
-                    self.recorded[t] = 0
-            self.writer.write(sel, bags.encode_string(cutter.selection_json(topic, out)),
-                              max(received - 1, 0))
-            self.recorded[sel] += 1
             entry[4] = True
-            self.get_logger().info(f"recording {cutter.k} subapertures of {topic} on {out}")
-        self.writer.write(out, msg, received, source)
-        self.recorded[out] += 1
+            self.get_logger().info(f"recording {cutter.k} subapertures of {topic} on {written[-1]}")
 
     def _skip(self, reason):
         self.blocks_skipped += 1
@@ -326,7 +349,8 @@ class RecorderNode(Node):
 
     def _fail(self, reason: str):
         self.failed = reason
-        self.get_logger().error(reason + "; closing the bag, what was written stays readable")
+        self.health.set_state(health.ERROR, reason + "; closing the bag, what was written "
+                              "stays readable")
         self.close()
 
     def close(self):
@@ -344,7 +368,8 @@ class RecorderNode(Node):
         counts = ", ".join(f"{t}: {n}" for t, n in sorted(self.recorded.items()))
         saved = getattr(self.writer, "saved_count", None)
         self.get_logger().info(f"closed {self.path}: {saved} messages saved "
-                               f"(received and written: {counts})")
+                               f"(received and written: {counts}); "
+                               f"sequence gaps {json.dumps(self.gaps, sort_keys=True)}")
 
 
 def _finish(node) -> int:
@@ -356,7 +381,7 @@ def main(args=None):
     # BagError: e.g. the output exists and overwrite is false
     return run_node("recorder_node", RecorderNode, done=lambda n: n.done,
                     refused=(bags.BagError, ValueError), finish=_finish, args=args,
-                    pause_s=SPIN_PAUSE_S)
+                    pause_s=SPIN_PAUSE_S, stop_linger_s=STOP_LINGER_S)
 
 
 if __name__ == "__main__":

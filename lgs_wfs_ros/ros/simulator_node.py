@@ -10,8 +10,9 @@ swapped in by the post-set callback, then announced on ``sensor``.
 Stamps are exposure times on the sensor's clock: the wall time at start plus one frame period
 per frame, so they are unique and strictly increasing whatever the publishing jitter. Frames
 leave from a publishing thread on a steady-clock schedule (``rate_hz``; 0 = the sensor's frame
-rate); when the simulation is slower than the schedule, frames go out as fast as it allows and
-the lag is logged.
+rate); when the simulation is slower than the schedule, frames go out as fast as it allows:
+that is logged once with the rate it holds, then counted (frames sent late) in the
+diagnostics and the final line. Counters and state go to ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from ..optics import geometry
 from ..optics.simulator import PROFILE_SOURCES, SimulationConfig, Simulator
 from ..sensor import DETECTORS, DTYPES, Sensor, SensorError
 from .spinning import run_node
-from . import parameters, qos
+from . import health, parameters, qos
 
 SENSOR_DOC = {
     "photons": "Expected detected photons per subaperture per frame.",
@@ -58,6 +59,7 @@ def _sensor_params():
     return out
 
 
+LATE_S = 1.0                 # a frame this late after its slot counts as behind the rate
 BATCH_FRAMES = 32            # frames rendered together for a small sensor
 BATCH_SUBAPERTURES = 1024    # ... as long as they hold at most this many spots
 
@@ -106,6 +108,8 @@ class SimulatorNode(Node):
         self._truth_pub = self.create_publisher(Image, "true_slopes", qos.SLOPES)
         self._sensor_pub = self.create_publisher(String, "sensor", qos.LATCHED)
         self.published = 0
+        self.late = 0            # frames that went out more than LATE_S after their slot
+        self.health = health.Health(self, self._diagnostic_values)
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._announce()
@@ -153,6 +157,7 @@ class SimulatorNode(Node):
         desc = self.sim.describe()
         self._sensor_pub.publish(String(data=json.dumps(desc, default=str)))
         s = self.sim.sensor
+        self.health.set_state(health.OK, "publishing")
         self.get_logger().info(
             f"sensor: {s.grid}x{s.grid} subapertures, {s.detector}, {s.photons:g} photons, "
             f"profile {self.sim.config.profile}, turbulence {self.sim.config.turbulence}")
@@ -208,16 +213,33 @@ class SimulatorNode(Node):
             delay = due - time.monotonic()
             if delay > 0:
                 self._stop.wait(delay)
-            elif -delay > 1.0 and time.monotonic() - lag_logged > 5.0:
-                lag_logged = time.monotonic()
-                self.get_logger().warning(f"simulation runs {-delay:.1f} s behind {rate:g} Hz")
+            elif -delay > LATE_S:
+                self._behind(rate, first)
                 due = time.monotonic()
+        late = f", {self.late} of them late (behind {rate:g} Hz)" if self.late else ""
         if first is not None and last > first:
             span = last - first
             self.get_logger().info(f"published {self.published} frames in {span:.3f} s "
-                                   f"({(self.published - 1) / span:.1f} Hz wall-clock)")
+                                   f"({(self.published - 1) / span:.1f} Hz wall-clock){late}")
         else:
-            self.get_logger().info(f"published {self.published} frames")
+            self.get_logger().info(f"published {self.published} frames{late}")
+        self.health.set_state(health.OK, "finished")
+
+    def _behind(self, rate: float, first: float) -> None:
+        """The schedule slipped by more than LATE_S: said once (with the pace held), then
+        counted; the schedule restarts from now."""
+        self.late += 1
+        held = (self.published - 1) / max(time.monotonic() - first, 1e-9)
+        if self.health.note(f"simulation slower than {rate:g} Hz", f"about {held:.0f} frames/s "
+                            "here; frames go out as fast as it allows (stamps keep the sensor's "
+                            "rate)") == 1:
+            self.health.set_state(health.WARN, f"behind: about {held:.0f} of {rate:g} Hz",
+                                  log=False)
+
+    def _diagnostic_values(self) -> dict:
+        s = self.sim.sensor
+        return {"published": self.published, "late": self.late, "grid": s.grid,
+                "detector": s.detector, "frame_rate_hz": s.frame_rate_hz}
 
     @staticmethod
     def _make_frames(sim, left):
