@@ -16,6 +16,8 @@ is accepted too):
                                 block's pixel axes: (1, 0) on a polar detector)
 ``lgs_wfs.input_name``      name of the pixel input (default: the first input)
 ``lgs_wfs.training``        free-form JSON, reported by ``describe()``
+``lgs_wfs.domain``          the training domain (:mod:`.domain`): radius range, detectors,
+                            photons, profile prior, input kind (default: none declared)
 ==========================  =================================================================
 
 Pixel input: float32 ``(batch, p*p)``, row-major subaperture pixels (block pixel axes: the
@@ -48,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from ..optics import geometry
+from . import domain as model_domain
 from .base import Centroider, check_options
 
 DEFAULT_MODEL = "ann_pupil"
@@ -131,7 +134,7 @@ def read_metadata(meta_map: dict) -> dict:
                 raw[k[len(META):]] = v
     md = {"detector": "any", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
           "conditioning": "none", "conditioning_input": "e", "conditioning_frame": "detector",
-          "input_name": None, "training": None}
+          "input_name": None, "training": None, "domain": None}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
@@ -251,14 +254,20 @@ class ANN(Centroider):
 
     Options:
         model: path or name (default "ann_pupil"), see :func:`resolve_model`.
+        out_of_domain: "refuse" (default: a sensor with any subaperture outside the
+            model's training domain, :mod:`.domain`, raises ValueError with the reason) |
+            "warn" (run; ``describe()["domain"]`` counts the subapertures outside).
     """
 
     name = "ann"
-    _allowed = ("model",)
+    _allowed = ("model", "out_of_domain")
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
         options.setdefault("model", DEFAULT_MODEL)
+        options.setdefault("out_of_domain", "refuse")
+        if options["out_of_domain"] not in ("refuse", "warn"):
+            raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
@@ -292,11 +301,23 @@ class ANN(Centroider):
             self.cond = (cname, np.ascontiguousarray(e, dtype=np.float32))
         elif len(inputs) > 1:
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
+        self.domain = self._check_domain(options["out_of_domain"])
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
         self.folded = None
         if md["input_norm"] == "sum":
             self.folded = self._fold()
+
+    def _check_domain(self, policy: str) -> "model_domain.DomainCheck":
+        """The sensor against the model's training domain; ValueError under "refuse"."""
+        kind = {"none": "image", "e": "image+e", "e_r": "image+e_r"}.get(self.meta["conditioning"],
+                                                                          "image+" + self.meta["conditioning"])
+        name = Path(self.path).stem
+        result = model_domain.check(model_domain.parse(self.meta["domain"]), self.sensor, name, kind)
+        if result.reasons and policy == "refuse":
+            raise ValueError("ann: sensor outside the model's training domain: " + "; ".join(result.reasons)
+                             + " (set ann.out_of_domain = warn to run it anyway)")
+        return result
 
     def _fold(self):
         """Session of the model with the normalisation folded in, or None (not foldable)."""
@@ -398,6 +419,10 @@ class ANN(Centroider):
         d["options"]["model"] = self.model_name
         d["model_sha256"] = self._sha256
         d["model_metadata"] = {k: v for k, v in self.meta.items()}
+        d["domain"] = self.domain.summary()
+        if self.domain.reasons:
+            d["warning"] = (f"{self.domain.count} of {self.n} subapertures outside {self.model_name}'s "
+                            "training domain (run with out_of_domain = warn): " + "; ".join(self.domain.reasons))
         return d
 
     @property
