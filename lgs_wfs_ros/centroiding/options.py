@@ -152,7 +152,8 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                  ("out_of_domain", "refuse", "A sensor with subapertures outside the model's "
                   "training domain (radius, detector, input): refuse to start, with the reason "
                   "(refuse), or run and count them in the description (warn).",
-                  {"choices": ("refuse", "warn")})),
+                  {"choices": ("refuse", "warn")}),
+                 *_PUPIL),
 }
 
 
