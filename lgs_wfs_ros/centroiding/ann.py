@@ -59,7 +59,7 @@ from . import domain as model_domain
 from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
-DEFAULT_MODEL = "ann_pupil"
+DEFAULT_MODEL = "ann_ref"   # reads the pupil-calibrated reference (docs/ann_ref.md)
 META = "lgs_wfs."
 
 
@@ -301,7 +301,7 @@ class ANN(Centroider):
     """Neural-network centroider.
 
     Options:
-        model: path or name (default "ann_pupil"), see :func:`resolve_model`.
+        model: path or name (default "ann_ref"), see :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.

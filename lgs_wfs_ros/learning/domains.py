@@ -38,6 +38,9 @@ def _sensor(rec: recipes.Recipe, training: dict | None) -> Sensor:
 def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     """The ``lgs_wfs.domain`` record of a model trained by ``rec`` (its recorded training
     ``training`` metadata, when given, supplies the sensor)."""
+    if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
+        from .reftrain import domain
+        return domain(rec)
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)
