@@ -16,7 +16,7 @@ import numpy as np
 
 from ..optics import geometry
 from ..sensor import Sensor
-from . import export, recipes
+from . import export, recipes, refdata
 
 PRIORS = {
     "mvn": "random 5-Gaussian profiles, joint normal fitted to measured profiles 0-65",
@@ -29,18 +29,16 @@ PRIORS = {
 
 def _sensor(rec: recipes.Recipe, training: dict | None) -> Sensor:
     sensor = (training or {}).get("sensor")
-    if sensor:
-        return Sensor.from_dict(sensor)
-    from .train import recipe_sensor          # numpy only; torch is imported inside train's functions
-    return recipe_sensor(rec)
+    if not sensor:
+        raise ValueError(f"{rec.name}: the training metadata records no sensor; its domain is unknown")
+    return Sensor.from_dict(sensor)
 
 
 def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     """The ``lgs_wfs.domain`` record of a model trained by ``rec`` (its recorded training
     ``training`` metadata, when given, supplies the sensor)."""
     if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
-        from .reftrain import domain
-        return domain(rec)
+        return reference_domain(rec)
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)
@@ -57,6 +55,15 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     if rec.photons is None and rec.noise_penalty_photons is not None:
         dom["noise_model"] = f"noise-free images, first-order Poisson penalty at {rec.noise_penalty_photons:g} photons"
     return dom
+
+
+def reference_domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.PriorSpec()) -> dict:
+    """The domain of a reference-reading recipe: the ranges its pairs were drawn from."""
+    return {"radius_m": list(prior.radius_m), "detector": ["cartesian", "polar"],
+            "photons": list(prior.photons), "profile_prior": prior.describe(),
+            "input": "image+reference",
+            "reference": "the spot of the sodium profile estimated by the pupil calibration "
+                         "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}
 
 
 def stamp(path) -> dict:

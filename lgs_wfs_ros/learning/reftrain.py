@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import export, recipes, refdata
+from . import domains, export, recipes, refdata
 from .model import layers_of, mlp, n_parameters
 
 REF_INPUT = "reference"
@@ -50,14 +50,6 @@ def generate(n: int, seed: int, batch: int = 4096, progress: bool = True) -> ref
             bar.update(m)
     return refdata.Pairs(*[np.concatenate([getattr(q, f) for q in parts])
                            for f in ("images", "refs", "y", "r_m", "e_pix", "photons")])
-
-
-def domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.PriorSpec()) -> dict:
-    return {"radius_m": list(prior.radius_m), "detector": ["cartesian", "polar"],
-            "photons": list(prior.photons), "profile_prior": prior.describe(),
-            "input": "image+reference",
-            "reference": "the spot of the sodium profile estimated by the pupil calibration "
-                         "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}
 
 
 def build_model(layers, pixels: int, gain: float, metadata: dict, name: str = "ann_ref"):
@@ -149,9 +141,31 @@ def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: in
                           "n": CHECK_N, "seed": CHECK_SEED,
                           "what": "fresh pairs of the training prior (reftrain.check_error)"}}
     model = build_model(layers_of(net), pixels, gain,
-                        {"lgs_wfs.training": training, "lgs_wfs.domain": domain(rec)}, rec.name)
+                        {"lgs_wfs.training": training, "lgs_wfs.domain": domains.reference_domain(rec)}, rec.name)
     path = export.save(model, Path(target))
     return {"path": str(path), "training": training, "history": hist}
 
 
-__all__ = ["train", "build_model", "features", "generate", "predict", "domain", "REF_INPUT"]
+def train_recipe(name: str, out_dir=None, samples: int | None = None, seed: int | None = None,
+                 quick: bool = False, force: bool = False, progress: bool = True,
+                 time_budget_s: float | None = None, **_ignored) -> dict:
+    """``lgs-wfs train`` for a reference recipe: as :func:`.train.train_model` (same
+    return keys), then the card of ``out_dir``."""
+    from . import card
+    from .train import target_path
+    target = target_path(name, out_dir, force)
+    rec = recipes.get(name)
+    seed = rec.seed if seed is None else int(seed)
+    samples = (rec.quick_samples if quick else rec.samples) if samples is None else int(samples)
+    epochs = max(2, rec.epochs // 8) if quick else rec.epochs
+    t0 = time.perf_counter()
+    print("recipe:", rec.line(samples), flush=True)
+    done = train(rec, target, samples, seed, epochs, progress, time_budget_s)
+    done["training"]["quick"] = quick
+    export.update_metadata(target, {"lgs_wfs.training": done["training"]})
+    return {"path": done["path"], "recipe": rec.line(samples), "history": done["history"],
+            "check_err_px": done["training"]["check"]["mean_err_px"], "validation": None,
+            "seconds": time.perf_counter() - t0, "card": str(card.write(target.parent))}
+
+
+__all__ = ["train_recipe", "train", "build_model", "features", "generate", "predict", "REF_INPUT"]

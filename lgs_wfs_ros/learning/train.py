@@ -261,15 +261,6 @@ def train_model(name: str, out_dir=None, samples: int | None = None, seed: int |
     seed = rec.seed if seed is None else int(seed)
     samples = (rec.quick_samples if quick else rec.samples) if samples is None else int(samples)
     epochs = max(2, rec.epochs // 8) if quick else rec.epochs
-    if rec.conditioning == "reference":
-        from . import card, reftrain
-        print("recipe:", rec.line(samples), flush=True)
-        done = reftrain.train(rec, target, samples, seed, epochs, progress, time_budget_s)
-        done["training"]["quick"] = quick
-        export.update_metadata(target, {"lgs_wfs.training": done["training"]})
-        return {"path": done["path"], "recipe": rec.line(samples), "history": done["history"],
-                "check_err_px": done["training"]["check"]["mean_err_px"], "validation": None,
-                "seconds": time.perf_counter() - t0, "card": str(card.write(out_dir))}
     line = rec.line(samples).replace(f"seed {rec.seed}", f"seed {seed}")
     print("recipe:", line, flush=True)
     torch.set_num_threads(1)
