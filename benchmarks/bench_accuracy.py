@@ -60,7 +60,7 @@ ESTIMATORS = {
     "cmf": ("cmf", {}),
     "corr": ("corr", {}),
     "cmf_history": ("cmf", {"reference": "history"}),
-    "ann_pupil": ("ann", {"model": "ann_pupil"}),
+    "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
 }
 QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ann_pupil")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46

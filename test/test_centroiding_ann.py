@@ -159,12 +159,12 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # the default model (ann_pupil) ships with the package, so it resolves by name ...
+    # the default model (ann_ref) ships with the package, so it resolves by name ...
     from lgs_wfs_ros.centroiding import ann
-    assert resolve_model("ann_pupil") == ann.model_dirs()[0] / "ann_pupil.onnx"
+    assert resolve_model(ann.DEFAULT_MODEL) == ann.model_dirs()[0] / "ann_ref.onnx"
     # ... and where no directory holds it, the error says so (both paths always run)
     monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
-    with pytest.raises(ValueError, match="'ann_pupil' not found"):
+    with pytest.raises(ValueError, match="'ann_ref' not found"):
         make_centroider("ann", SENSOR)
     with pytest.raises(ValueError, match="'tiny_cog' not found"):
         resolve_model("tiny_cog")

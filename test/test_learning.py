@@ -196,13 +196,31 @@ def test_export_rejects_bad_layers():
 
 
 def test_recipes_are_complete():
-    assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil"}
+    assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil", "ann_ref"}
     assert n_parameters(recipes.PAPER_SIZES) == 4146
     for name in recipes.SHIPPED:
         r = recipes.get(name)
         assert name in r.line() and f"seed {r.seed}" in r.line()
     with pytest.raises(ValueError):
         recipes.get("nope")
+
+
+def test_broad_prior_covers_the_issue_ranges_from_the_training_split_only():
+    """ann_ref's prior: centroids 85-100 km, FWHM 3-20 km (sporadic layers narrower), and
+    the references are not the profiles (stale, node-sampled)."""
+    from lgs_wfs_ros.learning import refdata
+    from lgs_wfs_ros.optics import sodium
+    rng = np.random.default_rng(5)
+    rho = refdata.broad_profiles(rng, 400)
+    c = sodium.centroid_altitude(refdata.GRID, rho) / 1e3
+    assert 84.0 < np.percentile(c, 2) and np.percentile(c, 98) < 101.5
+    assert np.percentile(c, 90) - np.percentile(c, 10) > 10.0      # the whole 85-100 km range
+    ref = refdata.calibrated(rng, rho)
+    assert np.all(ref >= 0) and np.allclose(np.trapezoid(ref, refdata.GRID, axis=1), 1.0, atol=0.02)
+    assert 0 < np.abs(ref - rho).sum(axis=1).min()
+    p = refdata.pairs(np.random.default_rng(6), 256)
+    assert p.r_m.max() > 30 and p.photons.min() >= 100 and p.photons.max() <= 3000
+    assert np.allclose(p.refs.sum(axis=1), 1.0, atol=1e-4) and np.isfinite(p.images).all()
 
 
 def test_tiny_adam_training_reduces_error():

@@ -12,6 +12,9 @@ from lgs_wfs_ros.sensor import Sensor
 MODELS = Path(__file__).resolve().parents[1] / "models"
 #: every shipped recipe: a missing model file fails these tests, it never skips them
 SHIPPED = list(recipes.SHIPPED)
+#: the networks that read pixels alone (ann_ref reads a reference too: its own tests below)
+IMAGE_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning != "reference"]
+REFERENCE_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning == "reference"]
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -19,7 +22,7 @@ def test_shipped_model_present(name):
     assert (MODELS / f"{name}.onnx").is_file(), f"models/{name}.onnx is missing"
 
 
-@pytest.mark.parametrize("name", SHIPPED)
+@pytest.mark.parametrize("name", IMAGE_MODELS)
 def test_metadata_contract(name):
     path = MODELS / f"{name}.onnx"
     meta = export.read_metadata(path)
@@ -45,7 +48,7 @@ def test_metadata_contract(name):
     assert path.stat().st_size < 200_000
 
 
-@pytest.mark.parametrize("name", SHIPPED)
+@pytest.mark.parametrize("name", IMAGE_MODELS)
 def test_recorded_check_error_is_reproduced(name):
     path = MODELS / f"{name}.onnx"
     rec = recipes.get(name)
@@ -54,7 +57,7 @@ def test_recorded_check_error_is_reproduced(name):
     assert got == pytest.approx(recorded, rel=0.05, abs=0.003)
 
 
-@pytest.mark.parametrize("name", SHIPPED)
+@pytest.mark.parametrize("name", IMAGE_MODELS)
 def test_centroider_runs_model_on_its_sensor(name):
     """make_centroider('ann') on the training geometry beats a 0.3 px error at 1000 photons."""
     rec = recipes.get(name)
@@ -69,6 +72,23 @@ def test_centroider_runs_model_on_its_sensor(name):
     est = np.array([c.centroid(img[None])[0] for img in s.images])
     err = np.linalg.norm(est - truth, axis=1).mean()
     assert err < 0.3
+
+
+@pytest.mark.parametrize("name", REFERENCE_MODELS)
+def test_reference_model_contract_and_check_error(name):
+    """ann_ref: pixels and reference inputs (256 each), block-axes output, the reference
+    domain, and the recorded check error reproduced on the same fresh pairs."""
+    from lgs_wfs_ros.learning import reftrain
+    path = MODELS / f"{name}.onnx"
+    meta = export.read_metadata(path)
+    assert meta["lgs_wfs.conditioning"] == "reference" and meta["lgs_wfs.output_frame"] == "block"
+    assert meta["lgs_wfs.domain"]["input"] == "image+reference"
+    assert meta["lgs_wfs.domain"]["radius_m"][1] >= 35.0
+    ins = {i.name: i.shape for i in export.session(path).get_inputs()}
+    assert ins == {"pixels": ["batch", 256], "reference": ["batch", 256]}
+    check = meta["lgs_wfs.training"]["check"]
+    got = reftrain.check_error(path, check["n"], check["seed"])
+    assert got == pytest.approx(check["mean_err_px"], rel=1e-4)
 
 
 @pytest.mark.parametrize("where", [MODELS, MODELS / "paper_prior"])

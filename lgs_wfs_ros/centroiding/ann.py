@@ -8,14 +8,21 @@ is accepted too):
 ``lgs_wfs.detector``        "polar" | "cartesian" | "any" (default "any")
 ``lgs_wfs.input_norm``      "sum" (each subaperture divided by its total) | "none" (default "sum")
 ``lgs_wfs.output_scale``    float: slope px = output * scale (default 1)
-``lgs_wfs.output_frame``    "local" (along e / across e) | "detector" (default "detector")
+``lgs_wfs.output_frame``    "local" (along e / across e) | "detector" | "block" (the block's pixel
+                            axes, as the input) (default "detector")
 ``lgs_wfs.conditioning``    "none" | "e" (second input ``(batch, 2)`` = e in detector axes) |
-                            "e_r" (``(batch, 3)`` = (ex, ey, r_m / 15)) (default "none")
+                            "e_r" (``(batch, 3)`` = (ex, ey, r_m / 15)) | "reference" (second
+                            input ``(batch, p*p)``: the subaperture's current reference from
+                            the pupil calibration, unit sum, block axes; it must feed one
+                            ``MatMul`` with a constant matrix, :func:`split_reference`)
+                            (default "none")
 ``lgs_wfs.conditioning_input``  name of that second input (default "e")
 ``lgs_wfs.conditioning_frame``  "detector" (default: e in detector axes) | "pixel" (e in the
                                 block's pixel axes: (1, 0) on a polar detector)
 ``lgs_wfs.input_name``      name of the pixel input (default: the first input)
 ``lgs_wfs.training``        free-form JSON, reported by ``describe()``
+``lgs_wfs.domain``          the training domain (:mod:`.domain`): radius range, detectors,
+                            photons, profile prior, input kind (default: none declared)
 ==========================  =================================================================
 
 Pixel input: float32 ``(batch, p*p)``, row-major subaperture pixels (block pixel axes: the
@@ -48,9 +55,11 @@ from pathlib import Path
 import numpy as np
 
 from ..optics import geometry
+from . import domain as model_domain
+from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
-DEFAULT_MODEL = "ann_pupil"
+DEFAULT_MODEL = "ann_ref"   # reads the pupil-calibrated reference (docs/ann_ref.md)
 META = "lgs_wfs."
 
 
@@ -131,12 +140,13 @@ def read_metadata(meta_map: dict) -> dict:
                 raw[k[len(META):]] = v
     md = {"detector": "any", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
           "conditioning": "none", "conditioning_input": "e", "conditioning_frame": "detector",
-          "input_name": None, "training": None}
+          "input_name": None, "training": None, "domain": None}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
     checks = [("detector", ("polar", "cartesian", "any")), ("input_norm", ("sum", "none")),
-              ("output_frame", ("local", "detector")), ("conditioning", ("none", "e", "e_r")),
+              ("output_frame", ("local", "detector", "block")),
+              ("conditioning", ("none", "e", "e_r", "reference")),
               ("conditioning_frame", ("detector", "pixel"))]
     for key, allowed in checks:
         if md[key] not in allowed:
@@ -174,6 +184,47 @@ TOTAL_OUTPUT = "_lgs_wfs_total"
 # grid (~30 % outside the pupil) when that is cheaper than gathering the valid blocks
 # first: for small networks (the paper's 4,146 weights), not for ann_pupil's 26,000.
 ALL_BLOCKS_MAX_WEIGHTS = 10_000
+
+
+def split_reference(model, ref_input: str):
+    """Cut a reference model's reference branch out of the graph.
+
+    Args:
+        model: ``onnx.ModelProto`` whose input ``ref_input`` is used once, by a ``MatMul``
+            with a constant ``(p*p, h)`` matrix ``Wr`` (what ``learning/reftrain.py`` writes).
+
+    Returns:
+        ``(model', Wr)``: ``model'`` takes that product ``(batch, h)`` as its input named
+        ``ref_input + "_code"``; the centroider computes ``reference @ Wr`` once per
+        calibration refit, so a frame costs only the pixel branch.
+
+    Raises:
+        ValueError: the reference is not used that way.
+    """
+    import onnx
+    from onnx import helper, numpy_helper
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    g = m.graph
+    users = [n for n in g.node if ref_input in n.input]
+    inits = {i.name: i for i in g.initializer}
+    if len(users) != 1 or users[0].op_type != "MatMul" or users[0].input[0] != ref_input \
+            or users[0].input[1] not in inits:
+        raise ValueError(f"ann: the model's {ref_input!r} input must feed one MatMul with a constant matrix")
+    mm = users[0]
+    w = numpy_helper.to_array(inits[mm.input[1]]).astype(np.float32)
+    g.node.remove(mm)
+    if sum(mm.input[1] in n.input for n in g.node) == 0:
+        g.initializer.remove(inits[mm.input[1]])
+    code = ref_input + "_code"
+    for node in g.node:
+        for k, name in enumerate(node.input):
+            if name == mm.output[0]:
+                node.input[k] = code
+    old = [i for i in g.input if i.name == ref_input][0]
+    g.input.remove(old)
+    g.input.append(helper.make_tensor_value_info(code, onnx.TensorProto.FLOAT, ["batch", w.shape[1]]))
+    return m, w
 
 
 def fold_sum_normalisation(model, input_name: str, width: int):
@@ -250,20 +301,35 @@ class ANN(Centroider):
     """Neural-network centroider.
 
     Options:
-        model: path or name (default "ann_pupil"), see :func:`resolve_model`.
+        model: path or name (default "ann_ref"), see :func:`resolve_model`.
+        pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
+            a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
+            references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.
+        out_of_domain: "refuse" (default: a sensor with any subaperture outside the
+            model's training domain, :mod:`.domain`, raises ValueError with the reason) |
+            "warn" (run; ``describe()["domain"]`` counts the subapertures outside).
     """
 
     name = "ann"
-    _allowed = ("model",)
+    _allowed = ("model", "out_of_domain", *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
         options.setdefault("model", DEFAULT_MODEL)
+        options.setdefault("out_of_domain", "refuse")
+        if options["out_of_domain"] not in ("refuse", "warn"):
+            raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
         self.meta = read_metadata(self.session.get_modelmeta().custom_metadata_map)
         md = self.meta
+        self.pupil, self._graph = None, None
+        if md["conditioning"] == "reference":           # the reference enters once per refit
+            import onnx
+            self._graph, self._ref_w = split_reference(onnx.load(str(self.path)), md["conditioning_input"])
+            self.session = open_session(self._graph.SerializeToString())
+            md["conditioning_input"] += "_code"
         if md["pixels"] != self.p:
             raise ValueError(f"ann: model {self.path.name} takes {md['pixels']} x {md['pixels']} "
                              f"pixels, the sensor has {self.p} x {self.p}")
@@ -283,7 +349,10 @@ class ANN(Centroider):
                 raise ValueError(f"ann: conditioning {md['conditioning']!r} needs an input named "
                                  f"{cname!r}; the model has {list(inputs)}")
             e = np.asarray(self.layout.e, dtype=np.float32)
-            if md.get("conditioning_frame", "detector") == "pixel" and self.sensor.detector == "polar":
+            if md["conditioning"] == "reference":
+                self.pupil = pupil_cal.from_options(sensor, options, sensor.background_e)
+                e = self._reference_code()
+            elif md.get("conditioning_frame", "detector") == "pixel" and self.sensor.detector == "polar":
                 # e in the block's own pixel axes: along local x on a polar detector
                 e = np.tile(np.array([1.0, 0.0], dtype=np.float32), (e.shape[0], 1))
             if md["conditioning"] == "e_r":
@@ -292,17 +361,49 @@ class ANN(Centroider):
             self.cond = (cname, np.ascontiguousarray(e, dtype=np.float32))
         elif len(inputs) > 1:
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
+        self.domain = self._check_domain(options["out_of_domain"])
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
         self.folded = None
         if md["input_norm"] == "sum":
             self.folded = self._fold()
 
+    def _reference_code(self) -> np.ndarray:
+        """``(n, h)`` float32: the calibration's current references (unit sum, block axes)
+        through the model's reference matrix."""
+        ref = self.pupil.reference()[0].reshape(self.n, -1)
+        tot = ref.sum(axis=1, keepdims=True)
+        ref = np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
+        return np.ascontiguousarray(ref @ self._ref_w, dtype=np.float32)
+
+    def _observe(self, rows=None, flat=None) -> None:
+        """Feed a frame to the pupil calibration (reference models); a refit installs the
+        new references."""
+        if self.pupil is None:
+            return
+        refit = self.pupil.observe_rows(rows, self.valid_rows) if rows is not None \
+            else self.pupil.observe(np.asarray(flat, dtype=np.float64))
+        if refit:
+            self.cond = (self.cond[0], self._reference_code())
+            self.__dict__.pop("_cond_rows", None)
+
+    def _check_domain(self, policy: str) -> "model_domain.DomainCheck":
+        """The sensor against the model's training domain; ValueError under "refuse"."""
+        kind = {"none": "image", "e": "image+e", "e_r": "image+e_r"}.get(self.meta["conditioning"],
+                                                                          "image+" + self.meta["conditioning"])
+        name = Path(self.path).stem
+        result = model_domain.check(model_domain.parse(self.meta["domain"]), self.sensor, name, kind)
+        if result.reasons and policy == "refuse":
+            raise ValueError("ann: sensor outside the model's training domain: " + "; ".join(result.reasons)
+                             + " (set ann.out_of_domain = warn to run it anyway)")
+        return result
+
     def _fold(self):
         """Session of the model with the normalisation folded in, or None (not foldable)."""
         import onnx
         try:
-            model = fold_sum_normalisation(onnx.load(str(self.path)), self.input_name, self.p * self.p)
+            src = self._graph if self._graph is not None else onnx.load(str(self.path))
+            model = fold_sum_normalisation(src, self.input_name, self.p * self.p)
         except Exception:   # an unusual graph: keep the plain path
             return None
         if model is None:
@@ -363,19 +464,27 @@ class ANN(Centroider):
         rows = self.frame_rows(raw) if self.folded is not None and self._all_blocks else None
         if rows is not None:                            # a frame: every block in one pass
             x = rows if rows.dtype == np.float32 else rows.astype(np.float32)
+            self._observe(rows=x)
             out, total = self._run_folded(x, all_blocks=True)
             out, total = out[self.valid_rows], total[self.valid_rows]
         else:
+            if self.pupil is not None:
+                self._observe(flat=self.as_stack(raw).reshape(self.n, -1))
             out, total = self._run_stack(raw)
         ok = np.isfinite(total) & (total > 0)
-        out = out * self.meta["output_scale"]
+        return self.finish(self._block_axes(out * self.meta["output_scale"]), ok)
+
+    def _block_axes(self, out: np.ndarray) -> np.ndarray:
+        """Model output ``(..., n, 2)`` in its ``output_frame`` -> block pixel axes."""
+        if self.meta["output_frame"] == "block":
+            return out
         if self.meta["output_frame"] == "local":
             out = geometry.local_to_detector(out, self.layout.e)
-        return self.finish(self.to_pixel_axes(out), ok)
+        return self.to_pixel_axes(out)
 
     def centroid_many(self, frames) -> np.ndarray:
         """As :meth:`Centroider.centroid_many`: one network run for all frames."""
-        stacks = self.many_stacks(frames)
+        stacks = self.many_stacks(frames) if self.pupil is None else None   # pupil: frame by frame
         if stacks is None or not len(stacks) or self.folded is None:
             return super().centroid_many(frames)
         k = stacks.shape[0]
@@ -385,9 +494,14 @@ class ANN(Centroider):
         out = out.reshape(k, self.n, 2) * self.meta["output_scale"]
         total = total.reshape(k, self.n)
         ok = np.isfinite(total) & (total > 0)
-        if self.meta["output_frame"] == "local":
-            out = geometry.local_to_detector(out, self.layout.e)
-        return self.finish(self.to_pixel_axes(out), ok)
+        return self.finish(self._block_axes(out), ok)
+
+    def reset(self) -> None:
+        """Forget the pupil calibration's profile (reference models): back to its prior."""
+        if self.pupil is not None:
+            self.pupil.reset()
+            self.cond = (self.cond[0], self._reference_code())
+            self.__dict__.pop("_cond_rows", None)
 
     def describe(self):
         """As :meth:`Centroider.describe`, the model given by name and sha256 (never an
@@ -398,6 +512,12 @@ class ANN(Centroider):
         d["options"]["model"] = self.model_name
         d["model_sha256"] = self._sha256
         d["model_metadata"] = {k: v for k, v in self.meta.items()}
+        d["domain"] = self.domain.summary()
+        if self.pupil is not None:
+            d["pupil_calibration"] = self.pupil.describe()
+        if self.domain.reasons:
+            d["warning"] = (f"{self.domain.count} of {self.n} subapertures outside {self.model_name}'s "
+                            "training domain (run with out_of_domain = warn): " + "; ".join(self.domain.reasons))
         return d
 
     @property

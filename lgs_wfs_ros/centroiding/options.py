@@ -148,7 +148,12 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
         *_PUPIL,
     ),
     "ann": _rows("ann", ("model", "", "ONNX model: a name in models/ or a path (empty: the "
-                                       "default model).", {"unset": ""})),
+                                       "default model).", {"unset": ""}),
+                 ("out_of_domain", "refuse", "A sensor with subapertures outside the model's "
+                  "training domain (radius, detector, input): refuse to start, with the reason "
+                  "(refuse), or run and count them in the description (warn).",
+                  {"choices": ("refuse", "warn")}),
+                 *_PUPIL),
 }
 
 

@@ -44,6 +44,8 @@ def models_table(model_dir) -> str:
         tr = _training(model_dir, name)
         rec = tr.get("recipe") or recipes.get(name).to_dict()      # as trained
         ph = "noise-free" if tr.get("photons") is None else f"{tr['photons']:g} photons"
+        if tr.get("photons_range"):
+            ph = f"{tr['photons_range'][0]:g}-{tr['photons_range'][1]:g} photons"
         sizes = "-".join(map(str, rec["sizes"]))
         use = "runtime" if rec["shipped"] else "reproduction only (load by path)"
         lines.append(f"| `{name}` | {rec['detector']} | {sizes} ({tr.get('parameters', '?')} weights), "
@@ -119,12 +121,32 @@ def pupil_text(model_dir) -> str:
     return "\n".join(lines) + "\n"
 
 
+def accuracy_text(model_dir) -> str:
+    """The accuracy-benchmark summary recorded in models' metadata (``training.accuracy``,
+    written by ``benchmarks/bench_ann_ref.py --record``): per unseen family, the mean ratio
+    of the model's error to the Cramer-Rao bound and to cog."""
+    lines = []
+    for name in model_names(model_dir):
+        acc = _training(model_dir, name).get("accuracy")
+        if not acc:
+            continue
+        if not lines:
+            lines = ["## Accuracy on the unseen families (accuracy benchmark)", "",
+                     "| model | family | cases | error / CRB | error / cog |", "|---|---|---|---|---|"]
+        for fam, v in acc["per_family"].items():
+            lines.append(f"| `{name}` | {fam} | {v['cases']} | {v['ratio_crb']:.2f} | {v['ratio_cog']:.2f} |")
+        lines += ["", f"`{name}`: {acc['what']}; mean over the family's cases (detectors, launches, "
+                  "tilt models, 316 and 1000 photons); per-frame CPU (ms, full pupil): "
+                  + ", ".join(f"{k} {v:g}" for k, v in acc.get("cpu_ms_per_frame", {}).items()) + ".", ""]
+    return "\n".join(lines) + ("\n" if lines else "")
+
+
 def render(model_dir) -> str:
     """The whole card of ``model_dir`` (every model's row from its own metadata)."""
     parts = [HEADER, "## Models\n", models_table(model_dir), recipe_lines(model_dir),
              "## Validation\n", validation_text(model_dir)]
-    pup = pupil_text(model_dir)
-    return "\n".join(parts + ([pup] if pup else []))
+    pup, acc = pupil_text(model_dir), accuracy_text(model_dir)
+    return "\n".join(parts + [t for t in (pup, acc) if t])
 
 
 def write(model_dir) -> Path:

@@ -86,6 +86,16 @@ class Recipe:
 
     def line(self, samples: int | None = None) -> str:
         """The one-line recipe printed by ``lgs-wfs train``."""
+        if self.conditioning == "reference":
+            from .refdata import PriorSpec
+            pr = PriorSpec()
+            return (f"{self.name}: MLP {'-'.join(map(str, self.sizes))} tanh on (image - reference, "
+                    f"reference), both sum-normalised; {samples or self.samples} pairs of the "
+                    f"{pr.describe()}; references stale and seen through the pupil calibration's "
+                    f"node basis; r {pr.radius_m[0]:g}-{pr.radius_m[1]:g} m from the launch, any "
+                    f"angle, polar and cartesian, {pr.photons[0]:g}-{pr.photons[1]:g} photons "
+                    f"(log-uniform), positions N(0, {pr.sigma_px:g} px); Adam lr {self.lr:g} "
+                    f"cosine, batch {self.batch}, {self.epochs} epochs, loss {self.loss}, seed {self.seed}")
         ph = "noise-free" if self.photons is None else f"{self.photons:g} photons"
         where = ("random valid subapertures of the default pupil (probability ~ r^-"
                  f"{self.r_power:g}), detectors {'/'.join(self.detectors)}") if self.pupil \
@@ -136,6 +146,15 @@ RECIPES = {
                         note="one network for every valid subaperture, polar and cartesian, "
                              "conditioned on (e, r/15); 1000 photons"),
 }
+
+# The reference-reading network (learning/reftrain.py, refdata.py): reads the image and the
+# subaperture's current reference from the pupil calibration, one model for every
+# subaperture, launch position, detector and photon level of its domain.
+RECIPES["ann_ref"] = Recipe(
+    "ann_ref", "any", pupil=True, sizes=(512, 32, 32, 2), conditioning="reference",
+    samples=80_000, quick_samples=8_000, epochs=40, batch=256, lr=2e-3, loss="euclid", seed=15,
+    note="reads the image and its reference from the pupil calibration (image - reference, "
+         "reference): every radius to 35 m, both detectors, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they

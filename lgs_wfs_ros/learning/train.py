@@ -24,7 +24,7 @@ import numpy as np
 from ..optics.geometry import detector_to_local
 from ..optics.turbulence import turbulence_sigma_px
 from ..sensor import Sensor
-from . import dataset, export, recipes
+from . import dataset, domains, export, recipes
 from .model import layers_of, linears, mlp, n_parameters
 
 CHECK_SEED = 90_001          # seed of the small fixed check set stored in the metadata
@@ -301,7 +301,8 @@ def train_model(name: str, out_dir=None, samples: int | None = None, seed: int |
             f"penalty sum_i,j (dy_k/dx_i) Cov_ij (dy_k/dx_j) added to the squared error "
             f"(Bishop 1995), not as noisy samples; loss {rec.loss}")
     meta = {"lgs_wfs.detector": rec.detector, "lgs_wfs.output_frame": frame,
-            "lgs_wfs.conditioning_frame": "pixel", "lgs_wfs.training": training}
+            "lgs_wfs.conditioning_frame": "pixel", "lgs_wfs.training": training,
+            "lgs_wfs.domain": domains.recipe_domain(rec, training)}
     model = export.build_model(layers_of(net), pixels=recipe_sensor(rec).pixels,
                                conditioning=rec.conditioning, input_gain=input_gain(rec),
                                metadata=meta, name=name, rotate_to_local=rotate)

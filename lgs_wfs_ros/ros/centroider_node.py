@@ -202,6 +202,8 @@ class CentroiderNode(Node):
         desc.update(reason=why, time_ns=time.time_ns(), sensor_grid=self.sensor.grid)
         self._desc_pub.publish(String(data=json.dumps(desc, default=str)))
         self.get_logger().info(f"centroider: {desc.get('algorithm')} ({why})")
+        if desc.get("warning"):          # e.g. ann run outside its model's training domain
+            self.get_logger().warning(str(desc["warning"]))
         self.health.set_state(health.OK, "running", log=False)
 
     def _on_sensor(self, msg: String):

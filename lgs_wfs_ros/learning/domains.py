@@ -1,0 +1,90 @@
+"""Training domains of the models (``lgs_wfs.domain``, see :mod:`..centroiding.domain`).
+
+:func:`recipe_domain` derives a model's domain from what its training recorded: the
+training sensor (``lgs_wfs.training.sensor``, else the recipe's), the detectors drawn, the
+photons and the profile draw. :func:`train.train_model` writes it into every new model;
+:func:`stamp` writes it into an existing file without retraining (how the shipped models
+got theirs: ``python -m lgs_wfs_ros.learning.domains models models/paper_prior``).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..optics import geometry
+from ..sensor import Sensor
+from . import export, recipes, refdata
+
+PRIORS = {
+    "mvn": "random 5-Gaussian profiles, joint normal fitted to measured profiles 0-65",
+    "independent": "random 5-Gaussian profiles, independent normals per parameter (the paper's "
+                   "draw) fitted to measured profiles 0-65",
+    "mix": "random 5-Gaussian profiles fitted to measured profiles 0-65: a fraction {f:g} with "
+           "independent normals (the paper's draw), the rest joint normal",
+}
+
+
+def _sensor(rec: recipes.Recipe, training: dict | None) -> Sensor:
+    sensor = (training or {}).get("sensor")
+    if not sensor:
+        raise ValueError(f"{rec.name}: the training metadata records no sensor; its domain is unknown")
+    return Sensor.from_dict(sensor)
+
+
+def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
+    """The ``lgs_wfs.domain`` record of a model trained by ``rec`` (its recorded training
+    ``training`` metadata, when given, supplies the sensor)."""
+    if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
+        return reference_domain(rec)
+    sensor = _sensor(rec, training)
+    lay = geometry.layout(sensor)
+    r = np.asarray(lay.r_m, dtype=float)
+    dom = {"radius_m": [round(float(r.min()), 4), round(float(r.max()), 4)],
+           "detector": sorted(set(rec.detectors)) if rec.pupil else [rec.detector],
+           "photons": None if rec.photons is None else [float(rec.photons)] * 2,
+           "profile_prior": PRIORS[rec.profile_model].format(f=rec.mix_fraction),
+           "input": {"none": "image", "e": "image+e", "e_r": "image+e_r"}[rec.conditioning],
+           "launch_xy_m": list(sensor.launch_xy_m)}
+    if not rec.pupil and rec.detector == "cartesian":
+        e = np.asarray(lay.e, dtype=float)[0]
+        a = round(float(np.degrees(np.arctan2(e[1], e[0]))), 3)
+        dom["e_angle_deg"] = [a, a]
+    if rec.photons is None and rec.noise_penalty_photons is not None:
+        dom["noise_model"] = f"noise-free images, first-order Poisson penalty at {rec.noise_penalty_photons:g} photons"
+    return dom
+
+
+def reference_domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.PriorSpec()) -> dict:
+    """The domain of a reference-reading recipe: the ranges its pairs were drawn from."""
+    return {"radius_m": list(prior.radius_m), "detector": ["cartesian", "polar"],
+            "photons": list(prior.photons), "profile_prior": prior.describe(),
+            "input": "image+reference",
+            "reference": "the spot of the sodium profile estimated by the pupil calibration "
+                         "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}
+
+
+def stamp(path) -> dict:
+    """Write the domain of the model file ``path`` (named after its recipe) into its
+    metadata, from its recorded training; returns the domain."""
+    path = Path(path)
+    rec = recipes.get(path.stem)
+    training = export.read_metadata(path).get("lgs_wfs.training")
+    dom = recipe_domain(rec, training)
+    export.update_metadata(path, {"lgs_wfs.domain": dom})
+    return dom
+
+
+def main(argv=None) -> int:
+    """Stamp every recipe-named ``*.onnx`` in the given directories."""
+    for d in (argv if argv is not None else sys.argv[1:]):
+        for f in sorted(Path(d).glob("*.onnx")):
+            if f.stem in recipes.RECIPES:
+                print(f, stamp(f))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

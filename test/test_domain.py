@@ -1,0 +1,124 @@
+"""Model training domains: the shipped models declare theirs, the ann centroider refuses a
+sensor outside it with the reason, and with out_of_domain = warn runs and counts."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper
+
+from lgs_wfs_ros.centroiding import make_centroider, options
+from lgs_wfs_ros.centroiding import domain as dom
+from lgs_wfs_ros.learning import domains, export, recipes
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+POLAR = Sensor(detector="polar")
+
+
+def test_ann_1k_on_a_full_pupil_refuses_with_the_reason():
+    with pytest.raises(ValueError) as exc:
+        make_centroider("ann", POLAR, model="ann_1k")
+    msg = str(exc.value)
+    print("refusal:", msg)
+    r = geometry.layout(POLAR).r_m
+    assert "ann_1k was trained at r = 14.75 m" in msg
+    assert f"its radii run {r.min():.2f}-{r.max():.2f} m" in msg
+    assert "out_of_domain = warn" in msg
+
+
+def test_ann_1k_on_a_full_pupil_runs_when_overridden_and_counts():
+    c = options.build("ann", POLAR, {"model": "ann_1k", "out_of_domain": "warn"})
+    d = json.loads(json.dumps(c.describe()))          # what the node publishes
+    r = np.asarray(geometry.layout(POLAR).r_m)
+    expected = int(np.count_nonzero(np.abs(r - 14.75) > dom.RADIUS_TOL_M))
+    print("count:", d["domain"]["out_of_domain_subapertures"], "warning:", d["warning"])
+    assert d["domain"]["out_of_domain_subapertures"] == expected == r.size
+    assert d["warning"].startswith(f"{expected} of {r.size} subapertures outside ann_1k")
+    assert d["options"]["out_of_domain"] == "warn"
+    frame = np.zeros(POLAR.frame_shape, dtype=np.float32) + 1.0
+    assert c.centroid(frame).shape == (r.size, 2)
+
+
+def test_side_launch_counts_only_the_subapertures_beyond_the_training_radii():
+    """ann_pupil (radii of the centre-launch pupil) with the launch 16 m off axis: exactly
+    the subapertures whose distance to the launch leaves [1.90, 14.95] m are counted."""
+    sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0))
+    with pytest.raises(ValueError, match="ann_pupil was trained at r = 1.90"):
+        make_centroider("ann", sensor, model="ann_pupil")
+    c = make_centroider("ann", sensor, model="ann_pupil", out_of_domain="warn")
+    lo, hi = export.read_metadata(MODELS / "ann_pupil.onnx")["lgs_wfs.domain"]["radius_m"]
+    r = np.asarray(geometry.layout(sensor).r_m)
+    outside = (r < lo - dom.RADIUS_TOL_M) | (r > hi + dom.RADIUS_TOL_M)
+    assert 0 < outside.sum() < r.size
+    assert np.array_equal(c.domain.outside, outside)
+    assert c.describe()["domain"]["out_of_domain_subapertures"] == int(outside.sum())
+
+
+def test_inside_the_domain_nothing_is_counted_and_photons_only_warn():
+    c = make_centroider("ann", Sensor.paper_single("polar", photons=316.0), model="ann_1k")
+    d = c.describe()
+    assert d["domain"]["out_of_domain_subapertures"] == 0 and "warning" not in d
+    assert any("316" in w for w in d["domain"]["warnings"])
+    cart = make_centroider("ann", Sensor.paper_single("cartesian"), model="ann_diag")
+    assert cart.describe()["domain"]["reasons"] == []
+
+
+def test_cartesian_single_subaperture_model_refuses_other_elongation_angles():
+    sensor = Sensor(detector="cartesian", single_subaperture_xy_m=(14.75, 0.0))
+    with pytest.raises(ValueError, match="elongation at 45 deg"):
+        make_centroider("ann", sensor, model="ann_diag")
+
+
+def _without_domain(tmp_path, name="ann_1k"):
+    m = onnx.load(str(MODELS / f"{name}.onnx"))
+    props = {p.key: p.value for p in m.metadata_props if p.key != "lgs_wfs.domain"}
+    del m.metadata_props[:]
+    helper.set_model_props(m, props)
+    path = tmp_path / f"{name}_nodomain.onnx"
+    onnx.save(m, str(path))
+    return path
+
+
+def test_a_model_without_a_domain_runs_unchecked_with_a_warning(tmp_path):
+    c = make_centroider("ann", POLAR, model=str(_without_domain(tmp_path)))
+    d = c.describe()["domain"]
+    assert d["known"] is False and d["out_of_domain_subapertures"] == 0
+    assert "declares no training domain" in d["warnings"][0]
+
+
+@pytest.mark.parametrize("bad", [{"detector": ["polar"], "input": "image"},
+                                 {"radius_m": [15, 14], "detector": ["polar"], "input": "image"},
+                                 {"radius_m": [0, 15], "detector": ["sideways"], "input": "image"},
+                                 {"radius_m": [0, 15], "detector": ["polar"], "input": "profile"},
+                                 "everywhere"])
+def test_a_malformed_domain_is_refused(tmp_path, bad):
+    path = _without_domain(tmp_path)
+    export.update_metadata(path, {"lgs_wfs.domain": bad})
+    with pytest.raises(ValueError, match="lgs_wfs.domain"):
+        make_centroider("ann", Sensor.paper_single("polar"), model=str(path))
+
+
+def test_out_of_domain_option_row_and_bad_values():
+    row = options.option("ann", "out_of_domain")
+    assert row.default == "refuse" and set(row.choices) == {"refuse", "warn"}
+    with pytest.raises(ValueError, match="out_of_domain"):
+        make_centroider("ann", Sensor.paper_single("polar"), model="ann_1k", out_of_domain="ignore")
+
+
+@pytest.mark.parametrize("where", [MODELS, MODELS / "paper_prior"])
+def test_every_model_file_declares_the_domain_its_training_recorded(where):
+    names = [f.stem for f in sorted(where.glob("*.onnx"))]
+    assert names
+    for name in names:
+        meta = export.read_metadata(where / f"{name}.onnx")
+        assert "lgs_wfs.domain" in meta, f"{name} declares no domain"
+        stored = dom.parse(meta["lgs_wfs.domain"])
+        if name in recipes.RECIPES:
+            assert meta["lgs_wfs.domain"] == domains.recipe_domain(recipes.get(name),
+                                                                   meta.get("lgs_wfs.training"))
+        assert stored["input"] in dom.INPUT_KINDS
