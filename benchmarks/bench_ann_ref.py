@@ -67,13 +67,14 @@ def tables_12(model: str, iterations: int = 5000, seed: int = 2014) -> list[dict
     from a single-subaperture pupil calibration), frame by frame."""
     from lgs_wfs_ros.analysis import reproduce as rp
     from lgs_wfs_ros.centroiding import options as table
+    from lgs_wfs_ros.optics import sodium
     from lgs_wfs_ros.sensor import Sensor
     rows = []
     for case in ("turbulent", "diagonal"):
         spec = rp.CASES[case]
         sensor = Sensor.paper_single(spec["detector"])
         h = rp.altitude_grid()
-        rho = rp.case_profile(spec["profile"], h)
+        rho = sodium.paper_profile(spec["profile"], h)
         truths = rp.independent_tilts(sensor, iterations, seed + 1)
         images = rp.expected_images(sensor, h, rho, truths)
         rng = np.random.default_rng([seed, list(rp.CASES).index(case)])

@@ -38,7 +38,7 @@ def _time(fn, repeats: int) -> tuple[float, float]:
 
 
 def _frame(sensor, seed=0):
-    from lgs_wfs_ros.centroiding.cog import elongation_fwhm_px, model_spots
+    from lgs_wfs_ros.optics.gaussian_spot import elongation_fwhm_px, model_spots
     from lgs_wfs_ros.optics import geometry
     lay = geometry.layout(sensor)
     n = lay.n_valid

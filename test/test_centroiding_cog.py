@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lgs_wfs_ros.centroiding import make_centroider
-from lgs_wfs_ros.centroiding.cog import FWHM_PER_SIGMA, elongation_fwhm_px
+from lgs_wfs_ros.optics.gaussian_spot import FWHM_PER_SIGMA, elongation_fwhm_px
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from spotgen import sodium_line, spots

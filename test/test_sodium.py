@@ -301,3 +301,20 @@ def test_unseen_families_sit_where_training_does_not(measured):
     assert best < 0.05 * d.max()
     with pytest.raises(ValueError, match="unknown profile family"):
         na.unseen_profiles("wide", 3, 700.0)
+
+
+def test_paper_profiles_are_one_place_for_simulator_and_reproduction():
+    """The simulator's fixed cases are sodium.paper_profile's arrays; the centred one gives an
+    unbiased CoG and the uncentred one the paper's -0.45 px at the outermost subaperture."""
+    from lgs_wfs_ros.optics.simulator import SimulationConfig, Simulator
+    from lgs_wfs_ros.sensor import Sensor
+    sensor = Sensor.paper_single("polar")
+    h = na.default_altitude_grid()
+    for name in ("centred", "uncentred"):
+        hs, rho = Simulator(sensor, SimulationConfig(profile=name, seed=0))._profile_setup()
+        np.testing.assert_array_equal(hs, h)
+        np.testing.assert_array_equal(rho, na.paper_profile(name, h))
+    assert abs(na.cog_offset_px(h, na.paper_profile("centred", h), r_m=14.75)) < 0.01
+    assert abs(na.cog_offset_px(h, na.paper_profile("uncentred", h), r_m=14.75) + 0.45) < 0.01
+    with pytest.raises(ValueError, match="uncentred_model"):
+        na.paper_profile("nope", h)

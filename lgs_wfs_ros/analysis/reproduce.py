@@ -103,16 +103,6 @@ def altitude_grid() -> np.ndarray:
     return sodium.default_altitude_grid()
 
 
-def case_profile(name: str, h: np.ndarray) -> np.ndarray:
-    if name == "centred":
-        return sodium.centred_profile(h, centre="harmonic")     # unbiased CoG, as the paper's
-    if name == "uncentred":
-        return sodium.uncentred_profile(h)
-    if name == "uncentred_model":
-        return sodium.uncentred_profile(h, shape="model")
-    raise ValueError(f"unknown profile {name!r}")
-
-
 def gtilt_series(sensor: Sensor, frames: int, seed: int) -> np.ndarray:
     """``(frames, 2)`` true spot displacements (px) of the single subaperture: the library's
     frozen-flow Kolmogorov layer (:class:`..optics.turbulence.FrozenFlow`: r0, wind and frame
@@ -233,7 +223,7 @@ def run_sweep(case: str, cfg: Config, log=print, profile: str | None = None,
         spec["profile"] = profile
     sensor = Sensor.paper_single(spec["detector"])
     h = altitude_grid()
-    rho = case_profile(spec["profile"], h)
+    rho = sodium.paper_profile(spec["profile"], h)
     rng = np.random.default_rng([cfg.seed, list(CASES).index(case)])
     t = cfg.iterations
     truths = independent_tilts(sensor, t, cfg.seed + 1) if spec["turbulence"] else np.zeros((t, 2))
@@ -457,7 +447,7 @@ def _profile_offsets() -> dict:
     """Untruncated noise-free CoG offsets (px) of the sweep profiles in the paper's subaperture."""
     h = altitude_grid()
     r_m = float(geometry.layout(Sensor.paper_single("polar")).r_m[0])
-    return {name: float(sodium.cog_offset_px(h, case_profile(name, h), r_m=r_m))
+    return {name: float(sodium.cog_offset_px(h, sodium.paper_profile(name, h), r_m=r_m))
             for name in ("centred", "uncentred", "uncentred_model")}
 
 

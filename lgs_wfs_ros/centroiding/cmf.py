@@ -36,9 +36,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..optics.gaussian_spot import elongation_fwhm_px, model_spots
 from . import kernels
 from .base import Centroider, check_options, choice, number
-from .cog import elongation_fwhm_px, model_spots
 from . import pupil as pupil_cal
 from .linearize import ResponseMap, transform_covariance
 from .reference import ReferenceSource, fourier_derivatives, integer_shift

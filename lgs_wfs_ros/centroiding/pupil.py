@@ -41,11 +41,11 @@ from scipy.linalg import cho_factor, solve_triangular
 from scipy.optimize import nnls
 
 from ..optics import geometry
+from ..optics.gaussian_spot import FWHM_PER_SIGMA
 from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_density, projected_hats
 from ..optics.sodium import gaussian_profile, harmonic_altitude
 from .base import number
 
-FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
 class PupilCalibration:

@@ -29,12 +29,12 @@ import numpy as np
 
 from ..optics import sodium
 from ..optics.detector import expose
+from ..optics.gaussian_spot import FWHM_PER_SIGMA
 from ..optics.model_spot import altitude_nodes
 from ..optics.spots import SpotModel
 from ..sensor import Sensor
 
 GRID = np.linspace(65e3, 125e3, 601)         # 100 m steps; holds 100 km centroids + 20 km widths
-FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
 @dataclass(frozen=True)

@@ -200,10 +200,8 @@ class Simulator:
                 raise ValueError(f"measured_index {c.measured_index} >= {prof.shape[0]} profiles")
             return h, prof[c.measured_index]
         h = sodium.default_altitude_grid()
-        if c.profile == "centred":
-            return h, sodium.centred_profile(h, h_ref, centre="harmonic")
-        if c.profile == "uncentred":
-            return h, sodium.uncentred_profile(h, h_ref, pixel_scale_arcsec=self.sensor.pixel_scale_arcsec)
+        if c.profile in ("centred", "uncentred"):
+            return h, sodium.paper_profile(c.profile, h, h_ref, self.sensor.pixel_scale_arcsec)
         if c.profile == "gaussian":
             return h, sodium.gaussian_profile(h, c.gaussian_centre_m, c.gaussian_fwhm_m)
         return h, None                                                  # random

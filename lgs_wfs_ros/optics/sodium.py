@@ -657,6 +657,26 @@ UNCENTRED_SHAPE = np.array([[0.80, 84300.0, 400.0], [0.90, 85300.0, 900.0],
                             [0.02, 99000.0, 8000.0]])    # profile 0's fit, lower part raised
 
 
+#: the paper's fixed profiles by name (docs/conventions.md section 3, docs/reproduction.md)
+PAPER_PROFILES = ("centred", "uncentred", "uncentred_model")
+
+
+def paper_profile(name: str, altitude_m, h_ref_m: float = 90e3,
+                  pixel_scale_arcsec: float = 0.5) -> np.ndarray:
+    """One of the paper's fixed profiles on ``altitude_m (K,)``: ``centred`` (harmonic-centred
+    on h_ref: the unbiased CoG of the paper's ideal case), ``uncentred`` (CoG -0.45 px at the
+    outermost subaperture) or ``uncentred_model`` (the other reading of the paper's uncentred
+    description: the random model's mean layer, its lower part brightened)."""
+    if name == "centred":
+        return centred_profile(altitude_m, h_ref_m, centre="harmonic")
+    if name == "uncentred":
+        return uncentred_profile(altitude_m, h_ref_m, pixel_scale_arcsec=pixel_scale_arcsec)
+    if name == "uncentred_model":
+        return uncentred_profile(altitude_m, h_ref_m, pixel_scale_arcsec=pixel_scale_arcsec,
+                                 shape="model")
+    raise ValueError(f"unknown paper profile {name!r}; choose one of {', '.join(PAPER_PROFILES)}")
+
+
 def _solve_shift(fn, target, lo=-5e3, hi=5e3):
     """Altitude shift s with fn(s) == target (fn increasing); bisection + secant, scalar."""
     from scipy.optimize import brentq

@@ -187,7 +187,6 @@ class SimulatorNode(FrameSource, Node):
         self._wait_to_start()
         stamp_ns = time.time_ns()
         due = time.monotonic()
-        lag_logged = 0.0
         queue, source = [], None
         first = last = None
         while not self._stop.is_set():
