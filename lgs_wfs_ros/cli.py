@@ -66,11 +66,41 @@ def _recover(args):
     return recover_command(args.src, args.dst, overwrite=args.overwrite)
 
 
-def _add(sub, name: str, help: str, examples: str) -> argparse.ArgumentParser:
-    """A subcommand whose --help ends with its examples."""
-    return sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".",
-                          epilog="examples:\n" + examples,
-                          formatter_class=argparse.RawDescriptionHelpFormatter)
+#: each subcommand's examples, shown at the end of its --help (test_cli_help parses them)
+EXAMPLES = {
+    "demo": ('  lgs-wfs demo                                  # both runs, bags under bags/\n'
+             '  lgs-wfs demo --frames 300 --full-frames 0 --algorithms cog,cmf   # quick\n'),
+    "inspect": ('  lgs-wfs inspect bags/sample.mcap\n'
+                '  lgs-wfs inspect bags/sample.mcap --json\n'),
+    "report": ('  lgs-wfs report bags/sample.mcap\n'
+               '  lgs-wfs report bags/sample.mcap --out report/   # + PNGs and summary.json\n'),
+    "replay": ('  lgs-wfs replay bags/sample.mcap --algorithms cog,cmf --out replayed.mcap\n'
+               '  lgs-wfs replay bags/sample.mcap --algorithms ann --models ann_pupil,ann_1k\n'
+               '  lgs-wfs replay bags/sample.mcap --algorithms cmf --options \'{"cmf": {"reference": "model"}}\'\n'),
+    "reproduce": ('  lgs-wfs reproduce --quick                  # into a new temporary directory\n'
+                  '  lgs-wfs reproduce --quick --out /tmp/repro\n'
+                  '  lgs-wfs reproduce --update-docs            # regenerate docs/reproduction.md\n'),
+    "train": ('  lgs-wfs train ann_1k --quick --out /tmp/models\n'
+              '  lgs-wfs train ann_1k --out models --force    # replace the shipped model\n'),
+    "recover": ('  lgs-wfs recover damaged.mcap fixed.mcap\n'),
+}
+
+
+def _add(sub, name: str, func, help: str, positionals=()) -> argparse.ArgumentParser:
+    """The subcommand ``name`` running ``func(args)``, its ``positionals`` given as
+    ``(name, help)`` pairs; its --help ends with ``EXAMPLES[name]``."""
+    p = sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".",
+                       epilog="examples:\n" + EXAMPLES[name],
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    for arg, text in positionals:
+        p.add_argument(arg, help=text)
+    p.set_defaults(func=func)
+    return p
+
+
+def _flag(p: argparse.ArgumentParser, name: str, help: str) -> None:
+    """An on/off option (false unless given)."""
+    p.add_argument(name, action="store_true", help=help)
 
 
 def _out_dir(p: argparse.ArgumentParser, what: str, default: str) -> None:
@@ -88,10 +118,8 @@ def parser() -> argparse.ArgumentParser:
                "'lgs-wfs <command> --help' explains each command's options.")
     sub = ap.add_subparsers(dest="verb", required=True, metavar="command")
 
-    p = _add(sub, "demo", "run simulator + centroiders + recorder as ROS 2 node processes, "
-             "then print the error table of each bag",
-             "  lgs-wfs demo                                  # both runs, bags under bags/\n"
-             "  lgs-wfs demo --frames 300 --full-frames 0 --algorithms cog,cmf   # quick\n")
+    p = _add(sub, "demo", _demo, "run simulator + centroiders + recorder as ROS 2 node processes, "
+             "then print the error table of each bag")
     p.add_argument("--out-dir", default="bags", metavar="DIR",
                    help="directory for the bags and their node logs (default: %(default)s)")
     p.add_argument("--frames", type=int, default=2100,
@@ -104,33 +132,24 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--algorithms", default="cog,cmf,ann", metavar="A,B,...",
                    help="centroiders run side by side, comma-separated, from cog, tcog, wcog, "
                         "cmf, corr, ann (default: %(default)s)")
-    p.set_defaults(func=_demo)
 
-    p = _add(sub, "inspect", "topics, counts, rates, sensor and centroider changes of a bag",
-             "  lgs-wfs inspect bags/sample.mcap\n  lgs-wfs inspect bags/sample.mcap --json\n")
-    p.add_argument("bag", help="an MCAP bag (any recorder)")
-    p.add_argument("--json", action="store_true", help="print JSON instead of text")
-    p.set_defaults(func=_inspect)
+    p = _add(sub, "inspect", _inspect, "topics, counts, rates, sensor and centroider changes of a bag",
+             positionals=[("bag", "an MCAP bag (any recorder)")])
+    _flag(p, "--json", "print JSON instead of text")
 
-    p = _add(sub, "report", "per-algorithm errors, CRB, plots and a JSON summary of a bag",
-             "  lgs-wfs report bags/sample.mcap\n"
-             "  lgs-wfs report bags/sample.mcap --out report/   # + PNGs and summary.json\n")
-    p.add_argument("bag", help="an MCAP bag with frames or slopes and true_slopes")
+    p = _add(sub, "report", _report, "per-algorithm errors, CRB, plots and a JSON summary of a bag",
+             positionals=[("bag", "an MCAP bag with frames or slopes and true_slopes")])
     _out_dir(p, "PNGs and summary.json", "print the tables only")
-    p.add_argument("--json", action="store_true", help="print the JSON summary alone")
-    p.set_defaults(func=_report)
+    _flag(p, "--json", "print the JSON summary alone")
 
-    p = _add(sub, "replay", "run centroiders over a bag's frames into a new bag (no ROS); each "
-             "uses the options recorded in the bag for its algorithm unless --options",
-             "  lgs-wfs replay bags/sample.mcap --algorithms cog,cmf --out replayed.mcap\n"
-             "  lgs-wfs replay bags/sample.mcap --algorithms ann --models ann_pupil,ann_1k\n"
-             "  lgs-wfs replay bags/sample.mcap --algorithms cmf --options '{\"cmf\": {\"reference\": \"model\"}}'\n")
-    p.add_argument("bag", help="input MCAP bag with frame and sensor topics, e.g. bags/full.mcap")
+    p = _add(sub, "replay", _replay, "run centroiders over a bag's frames into a new bag (no ROS); "
+             "each uses the options recorded in the bag for its algorithm unless --options",
+             positionals=[("bag", "input MCAP bag with frame and sensor topics, e.g. bags/full.mcap")])
     p.add_argument("--algorithms", default="cog,cmf,ann",
                    help="comma-separated centroiders, e.g. cog,cmf,corr,ann (default cog,cmf,ann)")
     p.add_argument("--out", default=None,
                    help="output bag, e.g. bags/full_replay.mcap (default <bag stem>_replay.mcap)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    _flag(p, "--overwrite", "replace an existing output bag")
     p.add_argument("--model", default=None,
                    help="ONNX model for ann, a name in models/ or a path, e.g. ann_pupil")
     p.add_argument("--models", default=None,
@@ -140,37 +159,24 @@ def parser() -> argparse.ArgumentParser:
                    help="JSON {algorithm: {option: value}} replacing the recorded options of those "
                         "algorithms (others keep the bag's, or the defaults), or @file.json, e.g. "
                         "'{\"cmf\": {\"reference\": \"history\"}, \"cog\": {\"bias\": \"pupil\"}}'")
-    p.set_defaults(func=_replay)
 
-    p = _add(sub, "reproduce", "the paper's figures and tables with our code",
-             "  lgs-wfs reproduce --quick                  # into a new temporary directory\n"
-             "  lgs-wfs reproduce --quick --out /tmp/repro\n"
-             "  lgs-wfs reproduce --update-docs            # regenerate docs/reproduction.md\n")
-    p.add_argument("--quick", action="store_true", help="fewer frames and a shorter validation run")
+    p = _add(sub, "reproduce", _reproduce, "the paper's figures and tables with our code")
+    _flag(p, "--quick", "fewer frames and a shorter validation run")
     _out_dir(p, "reproduction.md/.json and figures/", "a new temporary one")
-    p.add_argument("--update-docs", action="store_true",
-                   help="write into the checkout's docs/ instead (the tracked report)")
-    p.add_argument("--allow-fail", action="store_true",
-                   help="exit 0 even when a check fails (default: exit 1)")
-    p.set_defaults(func=_reproduce)
+    _flag(p, "--update-docs", "write into the checkout's docs/ instead (the tracked report)")
+    _flag(p, "--allow-fail", "exit 0 even when a check fails (default: exit 1)")
 
-    p = _add(sub, "train", "retrain a model from scratch (needs the 'train' extra)",
-             "  lgs-wfs train ann_1k --quick --out /tmp/models\n"
-             "  lgs-wfs train ann_1k --out models --force    # replace the shipped model\n")
-    p.add_argument("name", help="a shipped model's name (its recipe), e.g. ann_1k")
+    p = _add(sub, "train", _train, "retrain a model from scratch (needs the 'train' extra)",
+             positionals=[("name", "a shipped model's name (its recipe), e.g. ann_1k")])
+    _flag(p, "--force", "replace an existing --out/NAME.onnx")
     _out_dir(p, "NAME.onnx and its README.md card", "a new temporary one")
-    p.add_argument("--force", action="store_true", help="replace an existing --out/NAME.onnx")
     p.add_argument("--samples", type=int, default=None, help="training samples (default: the recipe's)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the recipe's)")
-    p.add_argument("--quick", action="store_true", help="a small quick run, for tests")
-    p.set_defaults(func=_train)
+    _flag(p, "--quick", "a small quick run, for tests")
 
-    p = _add(sub, "recover", "copy every readable message of a damaged bag to a new bag",
-             "  lgs-wfs recover damaged.mcap fixed.mcap\n")
-    p.add_argument("src", help="the damaged (e.g. cut-off) MCAP bag")
-    p.add_argument("dst", help="the bag to write")
-    p.add_argument("--overwrite", action="store_true", help="replace dst if it exists")
-    p.set_defaults(func=_recover)
+    p = _add(sub, "recover", _recover, "copy every readable message of a damaged bag to a new bag",
+             positionals=[("src", "the damaged (e.g. cut-off) MCAP bag"), ("dst", "the bag to write")])
+    _flag(p, "--overwrite", "replace dst if it exists")
     return ap
 
 
