@@ -194,7 +194,7 @@ def test_recorder_keeps_names_not_paths_of_descriptions(ros, tmp_path):
 
 def test_recorder_sizes_its_frame_queue_for_the_sensor(ros, tmp_path):
     """A 6 kHz single-subaperture sensor: the recorder's frame subscription gets the
-    840-frame queue, and a burst of 500 frames sent back to back is recorded whole."""
+    2000-frame queue, and a burst of 500 frames sent back to back is recorded whole."""
     from rclpy.parameter import Parameter
     from lgs_wfs_ros.ros.recorder_node import RecorderNode
 
@@ -205,7 +205,8 @@ def test_recorder_sizes_its_frame_queue_for_the_sensor(ros, tmp_path):
         Parameter("linger_s", value=1.0), Parameter("topics", value=["/wfs/frame", "/wfs/sensor"])]))
     rig = Rig(ros, sensor=fast)
     assert wait_for(lambda: "/wfs" in rec.sensors, timeout=10)
-    assert rec._subs["/wfs/frame"].qos_profile.depth == 840
+    # the subscription is re-created just after the description is stored
+    assert wait_for(lambda: rec._subs["/wfs/frame"].qos_profile.depth == 2000, timeout=10)
     assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 1, timeout=10)
     time.sleep(0.5)
     frame = small_frame(fast, 1)
@@ -344,24 +345,25 @@ def test_frame_queue_holds_a_fixed_time():
     from lgs_wfs_ros.ros import qos
     assert qos.frame_depth(700.0, 1_843_264) == 100            # full pupil: 0.14 s
     assert qos.frame_depth(800.0, 1_843_264) == 109            # 192 MiB
-    assert qos.frame_depth(6000.0, 600) == 840                 # paper's subaperture at 6 kHz
+    assert qos.frame_depth(6000.0, 600) == 2000                # paper's subaperture at 6 kHz
+    assert qos.frame_depth(700.0, 600) == 700                  # ... at 700 Hz: one second
     assert qos.frame_depth(100.0, 600) == 100                  # never below 100 frames
     assert qos.frame_depth(1e6, 600) == 2000                   # nor above 2000
     assert qos.frame_depth(700.0, 4 * 1_843_264) == 27         # 192 MiB of payload at most
-    assert qos.frame_qos(Sensor.paper_single("polar", frame_rate_hz=6000.0)).depth == 840
+    assert qos.frame_qos(Sensor.paper_single("polar", frame_rate_hz=6000.0)).depth == 2000
     assert qos.frame_qos(None) is qos.FRAME
 
 
 def test_centroider_sizes_its_frame_queue_for_the_sensor(ros):
     """A 6 kHz single-subaperture sensor arriving on the sensor topic re-creates the frame
-    subscription with an 840-frame queue; frames keep flowing through it."""
+    subscription with a 2000-frame queue; frames keep flowing through it."""
     from lgs_wfs_ros.ros.centroider_node import CentroiderNode
     fast = Sensor.paper_single("polar", frame_rate_hz=6000.0)
     node = ros.add(CentroiderNode(context=ros.context))
     assert node._frame_sub.qos_profile.depth == 100             # the default sensor, 700 Hz
     rig = Rig(ros, sensor=fast)
     assert wait_for(lambda: node.sensor == fast, timeout=10)
-    assert node._frame_sub.qos_profile.depth == 840
+    assert node._frame_sub.qos_profile.depth == 2000
     assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0, timeout=10)
     frame = small_frame(fast, 3)
     assert wait_for(lambda: rig.slopes or rig.send(frame, 10**9), timeout=10, interval=0.2)
