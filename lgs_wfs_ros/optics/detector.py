@@ -56,29 +56,54 @@ INVERSION_MAX = 12.0      # compiled path: inversion below this mean, numba's PT
 
 
 def _seed_state(seed):
-    """Seed numba's own generator and return a xorshift64* state (compiled code only)."""
-    np.random.seed(seed)
+    """A xorshift64* state from an int seed (compiled code only)."""
     return np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) | np.uint64(1)
+
+
+_INV_K = 1.0 / np.arange(1.0, 1001.0)   # 1/k for the search (a multiply instead of a divide)
+
+
+def _uniform(x):
+    """xorshift64*: ``(u in [0, 1) with 53 bits, new state)``."""
+    x ^= x >> np.uint64(12)
+    x ^= x << np.uint64(25)
+    x ^= x >> np.uint64(27)
+    return np.float64((x * np.uint64(0x2545F4914F6CDD1D)) >> np.uint64(11)) * (1.0 / 9007199254740992.0), x
 
 
 def _draw(m, x):
     """One exact ``Poisson(m)`` draw (``m > 0``) and the new xorshift64* state ``x``:
-    sequential-search inversion with 53-bit uniforms below ``INVERSION_MAX`` (``u <= 1 - m``
-    implies ``u <= exp(-m)``: 0 without an exp), numba's own sampler above."""
+    sequential-search inversion below ``INVERSION_MAX`` (``u <= 1 - m`` implies
+    ``u <= exp(-m)``: 0 without an exp), Hormann's transformed rejection (PTRS, numpy's
+    algorithm for large means) on the same uniforms above."""
     if m >= INVERSION_MAX:
-        return np.int64(np.random.poisson(m)), x
-    x ^= x >> np.uint64(12)
-    x ^= x << np.uint64(25)
-    x ^= x >> np.uint64(27)
-    u = np.float64((x * np.uint64(0x2545F4914F6CDD1D)) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+        slam = math.sqrt(m)
+        b = 0.931 + 2.53 * slam
+        a = -0.059 + 0.02483 * b
+        vr = 0.9277 - 3.6224 / (b - 2.0)
+        while True:
+            u, x = _uniform(x)
+            v, x = _uniform(x)
+            u -= 0.5
+            us = 0.5 - abs(u)
+            k = math.floor((2.0 * a / us + b) * u + m + 0.43)
+            if us >= 0.07 and v <= vr:
+                return np.int64(k), x
+            if k < 0 or (us < 0.013 and v > us):
+                continue
+            inv_alpha = 1.1239 + 1.1328 / (b - 3.4)
+            if (math.log(v) + math.log(inv_alpha) - math.log(a / (us * us) + b)
+                    <= -m + k * math.log(m) - math.lgamma(k + 1.0)):
+                return np.int64(k), x
+    u, x = _uniform(x)
     if u <= 1.0 - m:
         return np.int64(0), x
     p = math.exp(-m)
     f = p
     k = 0
     while u > f and k < 1000:
+        p *= m * _INV_K[k]
         k += 1
-        p *= m / k
         f += p
     return np.int64(k), x
 
@@ -96,6 +121,7 @@ def _poisson_fill(lam, floor, seed, out):
 
 if numba is not None:
     _seed_state = numba.njit(cache=True, nogil=True)(_seed_state)
+    _uniform = numba.njit(cache=True, nogil=True, inline="always")(_uniform)
     _draw = numba.njit(cache=True, nogil=True, inline="always")(_draw)
 _poisson_fast = (numba.njit(cache=True, nogil=True)(_poisson_fill) if numba is not None
                  else None)
