@@ -61,6 +61,7 @@ def _seed_state(seed):
 
 
 _INV_K = 1.0 / np.arange(1.0, 1001.0)   # 1/k for the search (a multiply instead of a divide)
+_LOG_FACT = np.array([math.lgamma(k + 1.0) for k in range(4096)])   # log k! for PTRS
 
 
 def _uniform(x):
@@ -92,8 +93,8 @@ def _draw(m, x):
             if k < 0 or (us < 0.013 and v > us):
                 continue
             inv_alpha = 1.1239 + 1.1328 / (b - 3.4)
-            if (math.log(v) + math.log(inv_alpha) - math.log(a / (us * us) + b)
-                    <= -m + k * math.log(m) - math.lgamma(k + 1.0)):
+            lf = _LOG_FACT[k] if k < _LOG_FACT.size else math.lgamma(k + 1.0)
+            if math.log(v * inv_alpha / (a / (us * us) + b)) <= -m + k * math.log(m) - lf:
                 return np.int64(k), x
     u, x = _uniform(x)
     if u <= 1.0 - m:

@@ -157,8 +157,17 @@ def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, z
         if per_field:
             scale = photons / total if total > 0 else 0.0
         r0, c0 = rows[i] * p, cols[i] * p
+        lmax = 0.0
+        for c in range(p):
+            lmax = max(lmax, line[c])
         for a in range(p):
             ga = scale * gmin[a]
+            top = ga * lmax                     # a dark row is all 0: no draws, no rounding
+            if top == 0.0 or (noise and top <= POISSON_FLOOR) or (integer and not noise
+                                                                   and top < 0.5):
+                for c in range(p):
+                    frame[r0 + a, c0 + c] = 0
+                continue
             for c in range(p):
                 x, s = _write_pixel(ga * line[c], noise, integer, x, frame, r0 + a, c0 + c)
                 sat += s
