@@ -124,9 +124,9 @@ def _write_pixel(lam, noise, integer, x, frame, row, col):
 
 def _zero_blocks(frame, rows, cols, p):
     for b in range(rows.size):
+        c0 = cols[b] * p
         for a in range(p):
-            for c in range(p):
-                frame[rows[b] * p + a, cols[b] * p + c] = 0
+            frame[rows[b] * p + a, c0:c0 + p] = 0
 
 
 def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, zcols,
@@ -165,8 +165,7 @@ def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, z
             top = ga * lmax                     # a dark row is all 0: no draws, no rounding
             if top == 0.0 or (noise and top <= POISSON_FLOOR) or (integer and not noise
                                                                    and top < 0.5):
-                for c in range(p):
-                    frame[r0 + a, c0 + c] = 0
+                frame[r0 + a, c0:c0 + p] = 0
                 continue
             for c in range(p):
                 x, s = _write_pixel(ga * line[c], noise, integer, x, frame, r0 + a, c0 + c)
