@@ -86,8 +86,8 @@ def _detector_rows(detector, repeats):
          "note": f"Simulator(fast=True).next(out=), {ms(t_fast)} ms/frame CPU over {n_fast} "
                  f"frames: " + ("tabulated line (fast_frames.PolarTable), spots, Poisson draws "
                                 "and the write in one compiled pass" if detector == "polar" else
-                                "SpotModel spots, then Poisson draws and the write in one "
-                                "compiled pass") +
+                                "compiled banded node sum (fast_frames.CartesianNodes), then "
+                                "Poisson draws and the write in one compiled pass") +
                  f"; expose(fast=True) alone {ms(t_fast_noise)} ms/frame (numpy's: {ms(t_noise)} ms)"},
         {"name": f"  turbulence ({detector})", "value": ms(t_turb), "unit": "ms/frame",
          "target": "", "note": "FrozenFlow.tilts_at: G-tilts of 2,784 subapertures"},

@@ -206,9 +206,10 @@ def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach,
     c = (p - 1) / 2.0
     last = tab.size - 2
     pmaj = np.empty(p)
+    acc = np.empty((p, p))                                  # (minor, major)
     for i in range(images.shape[0]):
         img = images[i]
-        img[:, :] = 0.0
+        acc[:, :] = 0.0
         for k in range(nk[i]):
             wk = w[i, k]
             if wk == 0.0:
@@ -229,18 +230,17 @@ def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach,
                 y = (a - ym - z0) * inv_h
                 g = min(max(int(math.floor(y)), 0), last)
                 ga = wk * (tab[g] + (y - g) * dtab[g])
-                if major_y[i]:
-                    for j in range(j0, j1 + 1):
-                        img[j, a] += ga * pmaj[j]
-                else:
-                    for j in range(j0, j1 + 1):
-                        img[a, j] += ga * pmaj[j]
+                for j in range(j0, j1 + 1):
+                    acc[a, j] += ga * pmaj[j]
         tot = 0.0
         for a in range(p):
             for j in range(p):
-                if img[a, j] < 0.0:
-                    img[a, j] = 0.0
-                tot += img[a, j]
+                v = max(acc[a, j], 0.0)
+                tot += v
+                if major_y[i]:
+                    img[j, a] = v
+                else:
+                    img[a, j] = v
         trunc[i] = min(max(1.0 - tot, 0.0), 1.0)
 
 
