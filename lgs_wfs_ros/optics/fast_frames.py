@@ -15,8 +15,9 @@ The same physics and the same node representation of the line as :class:`spots.S
   per-field photon scale, then per pixel the expected count, its exact Poisson draw
   (:func:`detector._draw`, the fast path's sampler) and the write into the frame (for
   example a transport's loaned buffer); the blocks outside the pupil are zeroed.
-* **Cartesian detector**: the spots are :class:`spots.SpotModel`'s (not separable on
-  axis-aligned pixels); the noise and the write into the frame are fused.
+* **Cartesian detector** (not separable on axis-aligned pixels): the same nodes summed by a
+  compiled banded loop, each node's pixel-integrated core over the ~8 x 8 pixels within
+  6.5 sigma + 1/2 px (the exact path's core table); then the noise and the write are fused.
 
 Used by ``Simulator(..., fast=True)`` when the sensor has no read noise and no background
 (the integer-count path); docs/simulator.md has the accuracy and the speed.

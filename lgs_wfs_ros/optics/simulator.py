@@ -154,8 +154,11 @@ class Simulator:
         displacements: optional source of the true displacements when
             ``config.turbulence`` is on: any object with ``tilts_at(index) -> (n_valid, 2)``
             pixels (default a :class:`turbulence.FrozenFlow` seeded from ``config.seed``).
-        fast: compiled Poisson noise (``detector.poisson(fast=True)``: the same distribution,
-            other draws; the same seed still gives the same frames). For live graphs.
+        fast: the compiled path for live graphs (:mod:`.fast_frames`): the same spots
+            evaluated from per-profile tables (to < 2e-6 of the light), exact Poisson draws
+            from another sampler (the same distribution, other draws; the same seed still
+            gives the same frames), written straight into ``next(out=)``. Fused when the
+            sensor has no read noise and no background, else ``expose(fast=True)``.
     """
 
     def __init__(self, sensor: Sensor, config: SimulationConfig | None = None, sodium_model=None,
