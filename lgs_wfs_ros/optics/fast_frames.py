@@ -246,7 +246,7 @@ def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach,
 
 
 if AVAILABLE:
-    import numba
+    numba = detector.numba              # the optional import lives in detector
     _jit = numba.njit(cache=True, nogil=True)
     _line_tables = _jit(_line_tables)
     _hermite_edges = _jit(_hermite_edges)
