@@ -17,6 +17,8 @@ full frame), far below anything measurable; every drawn pixel is an exact Poisso
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 try:                                   # optional: the 'fast' extra (compiled Poisson noise)
@@ -53,35 +55,75 @@ def _photon_map(images, photons, per_field: bool) -> np.ndarray:
 INVERSION_MAX = 12.0      # compiled path: inversion below this mean, numba's PTRS above
 
 
-def _poisson_fill(lam, elam, floor, seed, out):
-    """Compiled: ``out[i] ~ Poisson(lam[i])`` (0 where ``lam <= floor``; ``elam`` is
-    ``exp(-lam)``, computed vectorised by the caller): sequential-search inversion for small means with xorshift64* uniforms (53 bits), numba's own sampler
-    (seeded from the same seed) above ``INVERSION_MAX``."""
-    np.random.seed(seed)
-    x = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) | np.uint64(1)
-    mul = np.uint64(0x2545F4914F6CDD1D)
-    s12, s25, s27, s11 = np.uint64(12), np.uint64(25), np.uint64(27), np.uint64(11)
+def _seed_state(seed):
+    """A xorshift64* state from an int seed (compiled code only)."""
+    return np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) | np.uint64(1)
+
+
+_INV_K = 1.0 / np.arange(1.0, 1001.0)   # 1/k for the search (a multiply instead of a divide)
+_LOG_FACT = np.array([math.lgamma(k + 1.0) for k in range(4096)])   # log k! for PTRS
+
+
+def _uniform(x):
+    """xorshift64*: ``(u in [0, 1) with 53 bits, new state)``."""
+    x ^= x >> np.uint64(12)
+    x ^= x << np.uint64(25)
+    x ^= x >> np.uint64(27)
+    return np.float64((x * np.uint64(0x2545F4914F6CDD1D)) >> np.uint64(11)) * (1.0 / 9007199254740992.0), x
+
+
+def _draw(m, x):
+    """One exact ``Poisson(m)`` draw (``m > 0``) and the new xorshift64* state ``x``:
+    sequential-search inversion below ``INVERSION_MAX`` (``u <= 1 - m`` implies
+    ``u <= exp(-m)``: 0 without an exp), Hormann's transformed rejection (PTRS, numpy's
+    algorithm for large means) on the same uniforms above."""
+    if m >= INVERSION_MAX:
+        slam = math.sqrt(m)
+        b = 0.931 + 2.53 * slam
+        a = -0.059 + 0.02483 * b
+        vr = 0.9277 - 3.6224 / (b - 2.0)
+        while True:
+            u, x = _uniform(x)
+            v, x = _uniform(x)
+            u -= 0.5
+            us = 0.5 - abs(u)
+            k = math.floor((2.0 * a / us + b) * u + m + 0.43)
+            if us >= 0.07 and v <= vr:
+                return np.int64(k), x
+            if k < 0 or (us < 0.013 and v > us):
+                continue
+            inv_alpha = 1.1239 + 1.1328 / (b - 3.4)
+            lf = _LOG_FACT[k] if k < _LOG_FACT.size else math.lgamma(k + 1.0)
+            if math.log(v * inv_alpha / (a / (us * us) + b)) <= -m + k * math.log(m) - lf:
+                return np.int64(k), x
+    u, x = _uniform(x)
+    if u <= 1.0 - m:
+        return np.int64(0), x
+    p = math.exp(-m)
+    f = p
+    k = 0
+    while u > f and k < 1000:
+        p *= m * _INV_K[k]
+        k += 1
+        f += p
+    return np.int64(k), x
+
+
+def _poisson_fill(lam, floor, seed, out):
+    """Compiled: ``out[i] ~ Poisson(lam[i])`` (0 where ``lam <= floor``), see :func:`_draw`."""
+    x = _seed_state(seed)
     for i in range(lam.size):
         m = lam[i]
         if m <= floor:
             out[i] = 0
-        elif m < INVERSION_MAX:
-            x ^= x >> s12
-            x ^= x << s25
-            x ^= x >> s27
-            u = np.float64((x * mul) >> s11) * (1.0 / 9007199254740992.0)
-            p = elam[i]
-            f = p
-            k = 0
-            while u > f and k < 1000:
-                k += 1
-                p *= m / k
-                f += p
-            out[i] = k
         else:
-            out[i] = np.random.poisson(m)
+            out[i], x = _draw(m, x)
 
 
+if numba is not None:
+    _seed_state = numba.njit(cache=True, nogil=True)(_seed_state)
+    _uniform = numba.njit(cache=True, nogil=True, inline="always")(_uniform)
+    _draw = numba.njit(cache=True, nogil=True, inline="always")(_draw)
 _poisson_fast = (numba.njit(cache=True, nogil=True)(_poisson_fill) if numba is not None
                  else None)
 FAST_AVAILABLE = _poisson_fast is not None
@@ -98,7 +140,7 @@ def poisson(lam: np.ndarray, rng: np.random.Generator, floor: float = 0.0,
     if fast and FAST_AVAILABLE:
         flat = np.ascontiguousarray(lam, dtype=np.float64).reshape(-1)
         out = np.empty(flat.size, dtype=np.int64)
-        _poisson_fast(flat, np.exp(-flat), float(floor), int(rng.integers(2**31 - 1)), out)
+        _poisson_fast(flat, float(floor), int(rng.integers(2**31 - 1)), out)
         return out.reshape(np.shape(lam))
     flat = lam.reshape(-1)
     idx = np.flatnonzero(flat > floor)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..sensor import Sensor
-from . import sodium
+from . import fast_frames, sodium
 from .detector import UINT16_MAX, expose
 from .geometry import layout, stack_to_frame
 from .spots import SpotModel
@@ -154,8 +154,11 @@ class Simulator:
         displacements: optional source of the true displacements when
             ``config.turbulence`` is on: any object with ``tilts_at(index) -> (n_valid, 2)``
             pixels (default a :class:`turbulence.FrozenFlow` seeded from ``config.seed``).
-        fast: compiled Poisson noise (``detector.poisson(fast=True)``: the same distribution,
-            other draws; the same seed still gives the same frames). For live graphs.
+        fast: the compiled path for live graphs (:mod:`.fast_frames`): the same spots
+            evaluated from per-profile tables (to < 2e-6 of the light), exact Poisson draws
+            from another sampler (the same distribution, other draws; the same seed still
+            gives the same frames), written straight into ``next(out=)``. Fused when the
+            sensor has no read noise and no background, else ``expose(fast=True)``.
     """
 
     def __init__(self, sensor: Sensor, config: SimulationConfig | None = None, sodium_model=None,
@@ -181,6 +184,10 @@ class Simulator:
         self._batch_model = None
         self._random_epoch = None
         self.index = 0
+        self._renderer = None
+        if self.fast and fast_frames.AVAILABLE and sensor.read_noise_e == 0 \
+                and sensor.background_e == 0:
+            self._renderer = fast_frames.FastRenderer(self.layout)
         self.altitude_m, self._static = self._profile_setup()
         for a in (self.altitude_m, self._static):          # shared by every Frame: read-only
             if a is not None:
@@ -247,13 +254,18 @@ class Simulator:
     # -- frames --------------------------------------------------------------------------
     def spots(self, density, key, truth) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free ``(n_valid, p, p)`` images and truncation (model cached per profile)."""
+        return self.spot_model(density, key, truth).images(truth)
+
+    def spot_model(self, density, key, truth) -> SpotModel:
+        """The profile's :class:`SpotModel` (rebuilt when the profile changes or a shift
+        exceeds its margin)."""
         need = float(np.abs(truth).max()) if truth.size else 0.0
         if self._spots is None or key != self._spots_key or need > self._spots.max_shift_px:
             margin = max(3.0, math.ceil(need) + 1.0)
             lay = self.layout
             self._spots = SpotModel(self.sensor, lay.r_m, lay.e, self.altitude_m, density, margin)
             self._spots_key = key
-        return self._spots.images(truth)
+        return self._spots
 
     def next(self, out: np.ndarray | None = None) -> Frame:
         """The next frame; with ``out`` (a ``sensor.frame_shape`` array of the sensor's dtype,
@@ -262,8 +274,10 @@ class Simulator:
         i = self.index
         truth = self.truth_at(i)
         density, key = self.profile_at(i)
-        images, trunc = self.spots(density, key, truth)
         s = self.sensor
+        if self._renderer is not None:
+            return self._next_fused(i, truth, density, key, out)
+        images, trunc = self.spots(density, key, truth)
         counts, clipped = expose(images, s.photons, self._noise_rng, s.read_noise_e, s.background_e,
                                  self.config.subtract_background, s.dtype,
                                  noise_free=not self.config.noise, per_field=self.config.per_field,
@@ -272,6 +286,18 @@ class Simulator:
         self.index += 1
         return Frame(frame, truth, i, i / s.frame_rate_hz, trunc, density, self.altitude_m,
                      clipped["saturated"])
+
+    def _next_fused(self, i, truth, density, key, out) -> Frame:
+        """The fast path: spots, noise and the write into the frame in one compiled pass
+        (:mod:`.fast_frames`)."""
+        s = self.sensor
+        buf = np.empty(s.frame_shape, dtype=s.dtype) if out is None else out
+        seed = int(self._noise_rng.integers(2**31 - 1)) if self.config.noise else 0
+        trunc, sat = self._renderer.render(self.spot_model(density, key, truth), truth, buf,
+                                           s.photons, seed, self.config.noise,
+                                           self.config.per_field)
+        self.index += 1
+        return Frame(buf, truth, i, i / s.frame_rate_hz, trunc, density, self.altitude_m, sat)
 
     def __next__(self) -> Frame:
         return self.next()

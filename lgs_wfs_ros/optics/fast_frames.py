@@ -1,0 +1,387 @@
+"""Full-pupil frames at live rates: tabulated polar spots, fused render + noise (issue 18).
+
+The same physics and the same node representation of the line as :class:`spots.SpotModel`
+(it is built from one), evaluated differently:
+
+* **Polar detector: a tabulated line.** In its local frame a polar spot is the outer
+  product of the line profile along ``e`` and the pixel-integrated core across it. The
+  line's cumulative light at a pixel edge, ``C(y) = sum_k w_k Phi((y - u_k) / sigma)``,
+  depends on the frame only through ``y = edge - shift``: it is tabulated once per
+  profile, with its derivative (the line density), every ``1/H`` px (``H = 16``), and read
+  each frame at the ``p + 1`` edges by cubic Hermite interpolation (error < 1e-6 of the
+  spot's light). The node positions are multiples of ``1/16`` px there, so the table is
+  an exact sum of exact ``Phi`` samples. Across ``e`` the core's CDF is read the same way.
+* **Fused kernel** (numba): per subaperture the two 1-D profiles, the truncation, the
+  per-field photon scale, then per pixel the expected count, its exact Poisson draw
+  (:func:`detector._draw`, the fast path's sampler) and the write into the frame (for
+  example a transport's loaned buffer); the blocks outside the pupil are zeroed.
+* **Cartesian detector** (not separable on axis-aligned pixels): the same nodes summed by a
+  compiled banded loop, each node's pixel-integrated core over the ~8 x 8 pixels within
+  6.5 sigma + 1/2 px (the exact path's core table); then the noise and the write are fused.
+
+Used by ``Simulator(..., fast=True)`` when the sensor has no read noise and no background
+(the integer-count path); docs/simulator.md has the accuracy and the speed.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy.special import ndtr
+
+from . import detector
+from .detector import POISSON_FLOOR, UINT16_MAX
+from .geometry import detector_to_local
+from .spots import CORE_SIGMAS, SpotModel, _pixel_core_table
+
+H = 16                    # table samples per pixel (a multiple of every nodes-per-px m)
+AVAILABLE = detector.FAST_AVAILABLE
+
+
+@lru_cache(maxsize=8)
+def core_kernels(sigma_px: float):
+    """``Phi(q / (H sigma))`` and its derivative per px for ``q = -Q..Q`` (exact, ndtr).
+
+    Returns ``(KP (2Q+1,), KD (2Q+1,), Q)``; beyond ``+-Q`` the CDF is 0 / 1 within 1e-10.
+    """
+    q_max = int(math.ceil(CORE_SIGMAS * sigma_px * H)) + 1
+    z = np.arange(-q_max, q_max + 1) / (H * sigma_px)
+    kp = ndtr(z)
+    kd = np.exp(-0.5 * z * z) / (sigma_px * math.sqrt(2.0 * math.pi))
+    for a in (kp, kd):
+        a.setflags(write=False)
+    return kp, kd, q_max
+
+
+def _line_tables(w, k0, r, d0, kp, kd, q, tab, der):
+    """Compiled: ``tab[i, g] = sum_k w[i, k] Phi((g + d0 - (k0_i + k) r_i) / (H sigma))``
+    and ``der`` its derivative per px. ``d0 = H y_lo``: grid point ``g`` is at
+    ``y = y_lo + g / H``; node ``k`` at ``(k0_i + k) / m_i`` px, ``r_i = H / m_i``."""
+    n, nk = w.shape
+    ng = tab.shape[1]
+    pre = np.empty(nk + 1)
+    for i in range(n):
+        pre[0] = 0.0
+        for k in range(nk):
+            pre[k + 1] = pre[k] + w[i, k]
+        ri = r[i]
+        for g in range(ng):
+            base = g + d0 - k0[i] * ri                  # argument of node k: base - k r
+            kfull = -((q - base) // ri)                 # nodes k < kfull are past +Q: Phi = 1
+            kfull = min(max(kfull, 0), nk)
+            khi = min((base + q) // ri, nk - 1)         # nodes k > khi are before -Q: Phi = 0
+            c = pre[kfull]
+            d = 0.0
+            for k in range(kfull, khi + 1):
+                j = base - k * ri + q
+                c += w[i, k] * kp[j]
+                d += w[i, k] * kd[j]
+            tab[i, g] = c
+            der[i, g] = d
+
+
+def _hermite_edges(tab, der, t0, n_edges, step, out):
+    """Cubic Hermite reads of ``tab`` (with ``der`` per px) at indices ``t0 + j step``."""
+    g = math.floor(t0)
+    f = t0 - g
+    last = tab.size - 2
+    f2 = f * f
+    f3 = f2 * f
+    h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, (f3 - 2 * f2 + f) / H, -2 * f3 + 3 * f2, (f3 - f2) / H
+    for j in range(n_edges):
+        i = g + j * step
+        if i < 0:
+            out[j] = tab[0]
+        elif i > last:
+            out[j] = tab[last + 1]
+        else:
+            out[j] = h00 * tab[i] + h10 * der[i] + h01 * tab[i + 1] + h11 * der[i + 1]
+
+
+def _write_pixel(lam, noise, integer, x, frame, row, col):
+    """Expected count ``lam`` -> (drawn) count written to ``frame[row, col]``; returns
+    ``(state, saturated)`` (the xorshift state after the draw, 1 if clipped at 65535)."""
+    sat = 0
+    if noise:
+        v = np.int64(0)
+        if lam > POISSON_FLOOR:
+            v, x = detector._draw(lam, x)
+        if integer and v > UINT16_MAX:
+            v = UINT16_MAX
+            sat = 1
+        frame[row, col] = v
+    elif integer:
+        v = np.int64(np.rint(lam))
+        if v > UINT16_MAX:
+            v = UINT16_MAX
+            sat = 1
+        frame[row, col] = v
+    else:
+        frame[row, col] = lam
+    return x, sat
+
+
+def _zero_blocks(frame, rows, cols, p):
+    for b in range(rows.size):
+        c0 = cols[b] * p
+        for a in range(p):
+            frame[rows[b] * p + a, c0:c0 + p] = 0
+
+
+def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, zcols,
+                  photons, per_field, noise, integer, seed, frame, trunc):
+    """Compiled: every valid block of ``frame`` (rows local y, columns local x) from the
+    line tables and the core, Poisson-drawn (or expected counts if not ``noise``); the
+    blocks ``(zrows, zcols)`` outside the pupil are zeroed. Returns saturated pixels."""
+    x = detector._seed_state(seed)
+    cum = np.empty(p + 1)
+    emin = np.empty(p + 1)
+    line = np.empty(p)
+    gmin = np.empty(p)
+    sat = 0
+    half = p / 2.0
+    for i in range(rows.size):
+        _hermite_edges(tab[i], der[i], -H * half - d0 - H * s_maj[i], p + 1, H, cum)
+        _hermite_edges(kp, kd, q - H * half - H * s_min[i], p + 1, H, emin)
+        sl = 0.0
+        sm = 0.0
+        for j in range(p):
+            line[j] = max(cum[j + 1] - cum[j], 0.0)
+            gmin[j] = max(emin[j + 1] - emin[j], 0.0)
+            sl += line[j]
+            sm += gmin[j]
+        total = sl * sm
+        trunc[i] = min(max(1.0 - total, 0.0), 1.0)
+        scale = photons
+        if per_field:
+            scale = photons / total if total > 0 else 0.0
+        r0, c0 = rows[i] * p, cols[i] * p
+        lmax = 0.0
+        for c in range(p):
+            lmax = max(lmax, line[c])
+        for a in range(p):
+            ga = scale * gmin[a]
+            top = ga * lmax                     # a dark row is all 0: no draws, no rounding
+            if top == 0.0 or (noise and top <= POISSON_FLOOR) or (integer and not noise
+                                                                   and top < 0.5):
+                frame[r0 + a, c0:c0 + p] = 0
+                continue
+            for c in range(p):
+                x, s = _write_pixel(ga * line[c], noise, integer, x, frame, r0 + a, c0 + c)
+                sat += s
+    _zero_blocks(frame, zrows, zcols, p)
+    return sat
+
+
+def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, noise, integer,
+                   seed, frame):
+    """Compiled: ``images (n, p, p)`` -> counts written into the blocks of ``frame``."""
+    x = detector._seed_state(seed)
+    sat = 0
+    for i in range(rows.size):
+        scale = photons
+        if per_field:
+            total = 0.0
+            for a in range(p):
+                for c in range(p):
+                    total += images[i, a, c]
+            scale = photons / total if total > 0 else 0.0
+        r0, c0 = rows[i] * p, cols[i] * p
+        for a in range(p):
+            for c in range(p):
+                x, s = _write_pixel(scale * images[i, a, c], noise, integer, x, frame,
+                                    r0 + a, c0 + c)
+                sat += s
+    _zero_blocks(frame, zrows, zcols, p)
+    return sat
+
+
+def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach, s_maj,
+                      s_min, p, images, trunc):
+    """Compiled: each node's core, pixel-integrated along both detector axes (the fine
+    table of :func:`spots._pixel_core_table`), added over the pixels within ``reach`` of
+    it: ``images[i, minor, major]`` (transposed when the major axis is y), and the
+    truncation ``trunc[i] = 1 - sum``."""
+    c = (p - 1) / 2.0
+    last = tab.size - 2
+    pmaj = np.empty(p)
+    acc = np.empty((p, p))                                  # (minor, major)
+    for i in range(images.shape[0]):
+        img = images[i]
+        acc[:, :] = 0.0
+        for k in range(nk[i]):
+            wk = w[i, k]
+            if wk == 0.0:
+                continue
+            xm = c + a0[i] + k * inv_m[i] + s_maj[i]
+            ym = c + b[i, k] + s_min[i]
+            j0 = max(0, math.ceil(xm - reach))
+            j1 = min(p - 1, math.floor(xm + reach))
+            i0 = max(0, math.ceil(ym - reach))
+            i1 = min(p - 1, math.floor(ym + reach))
+            if j0 > j1 or i0 > i1:
+                continue
+            for j in range(j0, j1 + 1):
+                y = (j - xm - z0) * inv_h
+                g = min(max(int(math.floor(y)), 0), last)
+                pmaj[j] = tab[g] + (y - g) * dtab[g]
+            for a in range(i0, i1 + 1):
+                y = (a - ym - z0) * inv_h
+                g = min(max(int(math.floor(y)), 0), last)
+                ga = wk * (tab[g] + (y - g) * dtab[g])
+                for j in range(j0, j1 + 1):
+                    acc[a, j] += ga * pmaj[j]
+        tot = 0.0
+        for a in range(p):
+            for j in range(p):
+                v = max(acc[a, j], 0.0)
+                tot += v
+                if major_y[i]:
+                    img[j, a] = v
+                else:
+                    img[a, j] = v
+        trunc[i] = min(max(1.0 - tot, 0.0), 1.0)
+
+
+if AVAILABLE:
+    numba = detector.numba              # the optional import lives in detector
+    _jit = numba.njit(cache=True, nogil=True)
+    _line_tables = _jit(_line_tables)
+    _hermite_edges = _jit(_hermite_edges)
+    _write_pixel = numba.njit(cache=True, nogil=True, inline="always")(_write_pixel)
+    _zero_blocks = _jit(_zero_blocks)
+    _render_polar = _jit(_render_polar)
+    _expose_blocks = _jit(_expose_blocks)
+    _render_cartesian = _jit(_render_cartesian)
+
+
+class PolarTable:
+    """The line of every subaperture of a polar :class:`SpotModel`, tabulated for reads at
+    any shift up to ``model.max_shift_px`` per detector axis (``sqrt 2`` times that in the
+    local frame, plus one pixel).
+
+    Attributes: ``tab``, ``der`` ``(n, N)`` cumulative light and its derivative per px on
+    ``y = y_lo + g / H``; ``d0 = H y_lo``.
+    """
+
+    def __init__(self, model: SpotModel):
+        if not model.polar:
+            raise ValueError("PolarTable needs a polar-detector SpotModel")
+        p = model.sensor.pixels
+        n = model.n
+        nk = max(grp["w"].shape[1] for grp in model.groups)
+        w = np.zeros((n, nk))
+        k0 = np.zeros(n, dtype=np.int64)
+        r = np.zeros(n, dtype=np.int64)
+        for grp in model.groups:
+            m = grp["m"]
+            if H % m:
+                raise ValueError(f"nodes per px {m} does not divide H={H}")
+            idx = grp["idx"]
+            w[idx, :grp["w"].shape[1]] = grp["w"]
+            k0[idx] = np.rint(grp["a0"] * m).astype(np.int64)    # polar: node 0 at k0 / m px
+            r[idx] = H // m
+        reach = math.ceil(p / 2 + math.sqrt(2.0) * model.max_shift_px + 1.0)
+        self.d0 = -H * reach
+        self.sigma_px = model.sigma_px
+        kp, kd, q = core_kernels(self.sigma_px)
+        self.tab = np.empty((n, 2 * H * reach + 1))
+        self.der = np.empty_like(self.tab)
+        _line_tables(w, k0, r, self.d0, kp, kd, q, self.tab, self.der)
+
+
+class CartesianNodes:
+    """The nodes of a cartesian :class:`SpotModel` as padded per-subaperture arrays:
+    weights ``w (n, K)``, major coordinate of node 0 ``a0``, minor coordinates ``b (n, K)``,
+    node spacing ``inv_m`` (px), ``major_y``, node counts ``nk``."""
+
+    def __init__(self, model: SpotModel):
+        n = model.n
+        kmax = max(grp["w"].shape[1] for grp in model.groups)
+        self.w = np.zeros((n, kmax))
+        self.b = np.zeros((n, kmax))
+        self.a0 = np.zeros(n)
+        self.inv_m = np.zeros(n)
+        self.major_y = np.zeros(n, dtype=np.bool_)
+        self.nk = np.zeros(n, dtype=np.int64)
+        for grp in model.groups:
+            idx, kk = grp["idx"], grp["w"].shape[1]
+            self.w[idx, :kk] = grp["w"]
+            self.b[idx, :kk] = grp["b"]
+            self.a0[idx] = grp["a0"]
+            self.inv_m[idx] = 1.0 / grp["m"]
+            self.major_y[idx] = grp["major_y"]
+            self.nk[idx] = kk
+
+
+class FastRenderer:
+    """Frames of one layout written straight into a ``(G p, G p)`` buffer.
+
+    Args:
+        lay: the sensor layout (valid blocks and their rows/columns).
+    """
+
+    def __init__(self, lay):
+        self.sensor = lay.sensor
+        self.e = lay.e
+        rows, cols = np.nonzero(lay.valid)              # row-major: the stack's order
+        zr, zc = np.nonzero(~lay.valid)
+        self.rows, self.cols = rows.astype(np.int64), cols.astype(np.int64)
+        self.zrows, self.zcols = zr.astype(np.int64), zc.astype(np.int64)
+        self._table = None
+        self._model = None
+        self._images = None
+
+    def _check(self, out):
+        s = self.sensor
+        if out.shape != s.frame_shape or out.dtype != np.dtype(s.dtype):
+            raise ValueError(f"out must be {s.frame_shape} {s.dtype}, got {out.shape} {out.dtype}")
+
+    def render(self, model: SpotModel, truth, out, photons, seed, noise=True, per_field=True):
+        """Write one frame into ``out``; returns ``(truncated (n,), saturated)``.
+
+        Args:
+            model: the profile's spot model (its table is built on first use, cached).
+            truth: ``(n, 2)`` true displacements, px, detector axes (``|.| <=
+                model.max_shift_px``).
+            out: ``sensor.frame_shape`` array of the sensor's dtype.
+            photons: expected photons per subaperture (in the field if ``per_field``).
+            seed: int seed of this frame's draws.
+        """
+        self._check(out)
+        integer = out.dtype == np.uint16
+        p = self.sensor.pixels
+        if model.polar:
+            if self._model is not model:
+                self._table, self._model = PolarTable(model), model
+            loc = detector_to_local(np.asarray(truth, dtype=float), self.e)
+            kp, kd, q = core_kernels(model.sigma_px)
+            trunc = np.empty(self.rows.size)
+            t = self._table
+            sat = _render_polar(t.tab, t.der, t.d0, np.ascontiguousarray(loc[:, 0]),
+                                np.ascontiguousarray(loc[:, 1]), kp, kd, q, p, self.rows,
+                                self.cols, self.zrows, self.zcols, float(photons),
+                                bool(per_field), bool(noise), bool(integer), int(seed), out, trunc)
+            return trunc, int(sat)
+        if self._model is not model:
+            self._table, self._model = CartesianNodes(model), model
+        t = self._table
+        truth = np.asarray(truth, dtype=float)
+        s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
+        s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
+        if self._images is None:
+            self._images = np.empty((self.rows.size, p, p))
+        images, trunc = self._images, np.empty(self.rows.size)
+        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
+        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
+                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, p,
+                          images, trunc)
+        sat = _expose_blocks(images, p, self.rows, self.cols, self.zrows, self.zcols,
+                             float(photons), bool(per_field), bool(noise), bool(integer),
+                             int(seed), out)
+        return trunc, int(sat)
+
+
+__all__ = ["FastRenderer", "PolarTable", "core_kernels", "H", "AVAILABLE"]
