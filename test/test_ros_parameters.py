@@ -68,6 +68,8 @@ def test_a_new_row_becomes_a_parameter(ros, monkeypatch):
 def test_set_option_switch_and_refuse_through_the_service(ros, centroider):
     assert set_param(ros, CENTROIDER, "cmf.reference", "model").successful
     assert set_param(ros, CENTROIDER, "cmf.weighting", "model").successful
+    # no response scan: a linearised full-pupil CMF takes seconds to build (tens under load)
+    assert set_param(ros, CENTROIDER, "cmf.linearize", False).successful
     assert set_param(ros, CENTROIDER, "algorithm", "cmf").successful
     desc = centroider.centroider.describe()
     assert desc["algorithm"] == "cmf"
