@@ -237,3 +237,35 @@ def test_frame_row_and_stack_accumulation_agree():
     np.testing.assert_allclose(cals[0].light, cals[2].light, atol=1e-9)
     np.testing.assert_allclose(cals[1].light, cals[2].light, atol=1e-6)
     np.testing.assert_allclose(cals[0].flux, cals[2].flux)
+
+
+def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
+    """pupil_async: while a refit is held in its thread, frames keep being centroided with
+    the old reference (none waits for it); once finished, the next frame installs it, and
+    that frame's slopes equal those of the inline (deterministic) mode, which refitted from
+    the same frames."""
+    import threading
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(5)
+    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
+              for _ in range(6)]
+    inline = table.build("cmf", s, {"pupil_period": 2})
+    live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True})
+    gate, prepare = threading.Event(), live.pupil.prepare
+    live.pupil.prepare = lambda cal: (gate.wait(60), prepare(cal))[1]
+    v0 = live.ref.version
+    ref_inline = [inline.centroid(f) for f in frames]
+    before = table.build("cmf", s, {"pupil_period": 1000})      # never refits
+    ref_before = [before.centroid(f) for f in frames]
+    for k, f in enumerate(frames[:5]):                           # the refit starts at frame 2
+        np.testing.assert_array_equal(live.centroid(f), ref_before[k])
+    assert live.pupil.fits == 0 and live.ref.version == v0 and not gate.is_set()
+    gate.set()
+    live.pupil.wait()
+    out = live.centroid(frames[2])                               # installs, then measures
+    assert live.pupil.fits == 1 and live.ref.version > v0
+    np.testing.assert_array_equal(out, ref_inline[2])
+    assert np.abs(out - ref_before[2]).max() > 1e-3              # the refit changed something
+    live.pupil.wait()

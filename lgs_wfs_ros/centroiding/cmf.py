@@ -34,6 +34,8 @@ setting (history reference, image weighting) rebuilds every filter every frame.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from . import kernels
@@ -198,6 +200,8 @@ class CMF(Centroider):
         if o["reference"] == "pupil":
             self.pupil = pupil_cal.from_options(sensor, o, self.background)
             self._install_pupil()
+            if self.pupil.asynchronous:      # the filter and its response built off the frame path
+                self.pupil.prepare = self._prepare_pupil
         if self.linearize and self._image_at is not None:
             self.calibrate_response()        # at construction, not on a live node's first frame
 
@@ -212,7 +216,38 @@ class CMF(Centroider):
         """Feed one frame's ``(n, p*p)`` counts (background included) to the calibration;
         a refit installs the new reference."""
         if self.pupil is not None and self.pupil.observe(flat):
+            self._pupil_refitted()
+
+    def _pupil_refitted(self) -> None:
+        """Install what a refit gives: inline, the reference (the filter and its response
+        are rebuilt lazily); from a background refit, the filter and response it built."""
+        payload, self.pupil.payload = self.pupil.payload, None
+        if payload is None:
             self._install_pupil()
+            return
+        payload["ref"].frames = self.ref.frames
+        self.__dict__.update(payload)
+
+    # what a background refit builds and the frame path swaps in (see _prepare_pupil)
+    _REFIT_STATE = ("ref", "A", "M", "_at_buf", "_ref_ok", "_ref_counts", "_built_version",
+                    "_model_R", "_response", "_response_version", "_image_at")
+
+    def _prepare_pupil(self, calibration) -> dict:
+        """Run in the refit thread on the refitted ``calibration`` (a snapshot): a shallow
+        copy of this centroider with its own reference, design buffers and filter builds
+        the new reference, filter and response calibration; returns the attributes to
+        swap in. Nothing the frame path uses is written."""
+        sh = copy.copy(self)
+        sh.pupil = calibration
+        sh.ref = copy.copy(self.ref)
+        sh._at_buf = sh._work = sh._model_R = None
+        sh._install_pupil()
+        sh._rebuild_design()
+        if sh.weighting == "model":
+            sh._model_filter()
+        if sh.linearize:
+            sh.calibrate_response()
+        return {k: sh.__dict__[k] for k in self._REFIT_STATE if k in sh.__dict__}
 
     def model_reference(self, sodium_fwhm_m: float) -> np.ndarray:
         """``(n, p, p)`` centred model spots, ``sensor.photons`` counts plus the background,
@@ -408,7 +443,7 @@ class CMF(Centroider):
             if self.pupil is not None:
                 if raw.shape == self.sensor.frame_shape:
                     if self.pupil.observe_frame(raw):        # integer accumulation, no copy
-                        self._install_pupil()
+                        self._pupil_refitted()
                 else:
                     flat = self.as_stack(raw).reshape(self.n, -1)
                     self._observe_pupil(flat)

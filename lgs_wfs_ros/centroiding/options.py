@@ -69,6 +69,9 @@ _PUPIL = (
      "average of the mean images; 0: each period alone), e.g. 0.5.", {"low": 0.0, "high": 3600.0}),
     ("pupil_stride", 1, "Frames between frames added to the pupil calibration's mean images "
      "(1: every frame), e.g. 2 halves its per-frame cost.", {"low": 1, "high": 10000}),
+    ("pupil_async", False, "Refit in a background thread and swap the new references in at a "
+     "frame boundary (a live node then never stalls for the ~1-4 s refit); false: inline at "
+     "the end of each period, reproducible frame for frame (replay, benchmarks)."),
 )
 _HISTORY = (
     ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "
