@@ -403,7 +403,8 @@ class CMF(Centroider):
         return r, ok & self._ref_ok, var
 
     def _model_filter(self):
-        """Cached model-weighted filter: (R, ok, var, [R; 1] float64, float32, R var R^T, R 1)."""
+        """Cached model-weighted filter: (R, ok, var, [R; 1] float64, float32, R var R^T, R 1,
+        R float32 (C-contiguous, for :func:`.kernels.filter_flux`))."""
         if self._built_version != self.ref.version:
             self._rebuild_design()
         if self._model_R is None:
@@ -411,7 +412,8 @@ class CMF(Centroider):
             r, ok = solve_filter(self.A, self.M, var)
             r3 = np.concatenate([r, np.ones((self.n, 1, r.shape[2]))], axis=1)
             q = np.einsum("nkp,np,nlp->nkl", r, var, r)
-            self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2))
+            self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2),
+                             r.astype(np.float32))
         return self._model_R
 
     def _stack_products(self, data):
@@ -448,18 +450,19 @@ class CMF(Centroider):
                     flat = self.as_stack(raw).reshape(self.n, -1)
                     self._observe_pupil(flat)
             self.ref.observe(None, None)
-            r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+            r, fok, _, r3, r3_32, q, rsum, r_32 = self._model_filter()
             stack = kernels.stack_view(raw, self.n, self.p)
             if kernels.fits(raw, self.sensor.frame_shape):     # compiled, one pass, in place
-                m = kernels.block_contract(raw, kernels.origins(self), r3_32)
+                # R's two rows and a plain pixel sum for the flux: no row of ones to read
+                m = kernels.filter_flux(raw, kernels.origins(self), r_32)
             elif stack is not None:                            # the same sums for a stack
-                m = kernels.block_contract(stack, kernels.stack_origins(self.n, self.p), r3_32)
+                m = kernels.filter_flux(stack, kernels.stack_origins(self.n, self.p), r_32)
             else:
                 if flat is None:
                     flat = self.as_stack(raw).reshape(self.n, -1)
                 m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
         else:
-            m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
+            m, (r, fok, _, r3, r3_32, q, rsum, _) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p
         ok = np.isfinite(m).all(axis=1) & (m[:, 2] > 0) & (flux > 0) & fok
         with np.errstate(divide="ignore", invalid="ignore"):

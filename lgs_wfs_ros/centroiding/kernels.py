@@ -9,6 +9,8 @@ in registers. Outside the pupil nothing is read.
   exact integer sums for integer frames (what ``rows @ [1, x, y]`` gives in float).
 - :func:`block_contract`: ``(n, k)`` per-block weights times pixels (a CMF filter
   ``[R; 1]`` of ``(n, k, p*p)``), float32 weights times pixels summed in float64.
+- :func:`filter_flux`: as :func:`block_contract` for the CMF's ``R`` ``(n, 2, p*p)`` plus
+  each block's pixel sum (the flux), 2/3 of the weight traffic of ``[R; 1]``.
 - :func:`invert_response`: the linearisation's per-subaperture inversion of a 2-D
   Chebyshev response (:mod:`.linearize`): polynomial start and Newton steps, one pass per
   subaperture in registers (numpy needs a dozen ``(n, 2, D, D)`` passes and ~50 calls).
@@ -119,6 +121,32 @@ def _block_contract_impl(frame, origins, p, weights, out):
             out[b, q] = acc
 
 
+def _filter_flux_impl(frame, origins, p, weights, out):
+    # the CMF's two filter rows and a plain pixel sum (the flux row of [R; 1] without reading
+    # 4 bytes of ones per pixel), all in one pass over each block's pixels
+    n = origins.shape[0]
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        w0 = weights[b, 0]
+        w1 = weights[b, 1]
+        tot = 0
+        a0 = 0.0
+        a1 = 0.0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            o = i * p
+            for j in range(p):
+                v = row[j]
+                tot += np.int64(v)
+                x = np.float64(v)
+                a0 += np.float64(w0[o + j]) * x
+                a1 += np.float64(w1[o + j]) * x
+        out[b, 0] = a0
+        out[b, 1] = a1
+        out[b, 2] = tot
+
+
 def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_out, jac_out):
     # coef (n, 2, D, D) [out, x degree, y degree]; guess (n, K, 2) monomials x^i y^(d-i)
     n = m.shape[0]
@@ -224,9 +252,12 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
 
 
 if AVAILABLE:
-    # numpy error model: a zero determinant gives inf/NaN (rejected below), not an exception
-    _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy")(_invert_response_impl)
+    # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
+    # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
+    _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
+                                  fastmath={"contract", "reassoc", "nsz", "arcp"})(_invert_response_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
+    _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
     _block_contract = numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
 
 
@@ -251,6 +282,20 @@ def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
     if out is None:
         out = np.empty((n, k))
     _block_contract(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
+    return out
+
+
+def filter_flux(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 3)`` float64: :func:`block_contract` of the ``(n, 2, p*p)`` float32 filter rows,
+    then each block's plain pixel sum (what a row of ones gives, read for free)."""
+    n, k, pp = weights.shape
+    if k != 2:
+        raise ValueError(f"filter_flux takes 2 filter rows, got {k}")
+    p = int(round(pp ** 0.5))
+    if out is None:
+        out = np.empty((n, k + 1))
+    _filter_flux(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
     return out
 
 
@@ -295,5 +340,6 @@ def warm_up() -> None:
     o = np.zeros((1, 2), np.int64)
     cog_moments(frame, o, 4, 1.5)
     block_contract(frame, o, np.zeros((1, 3, 16), np.float32))
+    filter_flux(frame, o, np.zeros((1, 2, 16), np.float32))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     _warm = True
