@@ -28,8 +28,10 @@ for the 1.19 px core) is calibrated once on noise-free shifted references and in
 frame (:mod:`.linearize`), which makes the CMF exact to ~1e-3 px over +-1 px.
 
 Cost: with ``weighting="model"`` and a static reference (or ``update_period`` > 1 with
-model weighting) the per-frame work is one ``(n, 2, pp)`` contraction; the paper's
-setting (history reference, image weighting) rebuilds every filter every frame.
+model weighting) the per-frame work is one ``(n, 2, pp)`` contraction (compiled, with the
+flux, :func:`.kernels.filter_flux`) and, linearised, one compiled inversion pass
+(:func:`.kernels.invert_response`); the paper's setting (history reference, image
+weighting) rebuilds every filter every frame.
 """
 
 from __future__ import annotations
@@ -124,6 +126,9 @@ class CMF(Centroider):
             pupil, :mod:`.pupil`, with exact derivatives, refreshed every
             ``pupil_period`` frames) | "history" (the paper's) | "static"
             (``set_reference``) | "model".
+        pupil_async: refit in a background thread (the new reference, filter and response
+            are built there and swapped in at a frame boundary; not reproducible frame for
+            frame) instead of inline at the end of each period (False).
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration's refit
             period (frames), memory (s) and accumulation stride (frames).
         history: frames in the history mean (5).
