@@ -269,3 +269,24 @@ def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
     np.testing.assert_array_equal(out, ref_inline[2])
     assert np.abs(out - ref_before[2]).max() > 1e-3              # the refit changed something
     live.pupil.wait()
+
+
+def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
+    """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts is
+    the inline mode's, refitted from the same frames."""
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    frames = [sm.images(np.zeros((n, 2)))[0] * 1000.0 for _ in range(3)]
+    inline = table.build("cog", s, {"bias": "pupil", "pupil_period": 2})
+    live = table.build("cog", s, {"bias": "pupil", "pupil_period": 2, "pupil_async": True})
+    prior = live._bias.copy()
+    want = [inline.centroid(f) for f in frames]
+    live.centroid(frames[0])
+    live.centroid(frames[1])
+    live.pupil.wait()
+    got = live.centroid(frames[2])
+    assert live.pupil.fits == 1 and np.abs(live._bias - prior).max() > 0.03
+    np.testing.assert_array_equal(live._bias, inline._bias)
+    np.testing.assert_array_equal(got, want[2])
+    live.pupil.wait()
