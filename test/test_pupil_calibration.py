@@ -290,3 +290,28 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     np.testing.assert_array_equal(live._bias, inline._bias)
     np.testing.assert_array_equal(got, want[2])
     live.pupil.wait()
+
+
+def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
+    """pupil_async_lag: each refit is installed exactly lag frames after it started, so a
+    refit that is slow (held 0.3 s in its thread) and one that is not give the same slopes
+    frame for frame, and none before the lag."""
+    import time
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(6)
+    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
+              for _ in range(9)]
+    opts = {"pupil_period": 2, "pupil_async": True, "pupil_async_lag": 3}
+    fast, slow = table.build("cmf", s, opts), table.build("cmf", s, opts)
+    prepare = slow.pupil.prepare
+    slow.pupil.prepare = lambda cal: (time.sleep(0.3), prepare(cal))[1]
+    fits = []
+    for f in frames:
+        np.testing.assert_array_equal(fast.centroid(f), slow.centroid(f))
+        fits.append(slow.pupil.fits)
+        assert fast.pupil.fits == slow.pupil.fits
+    assert fits == [0, 0, 0, 0, 1, 1, 1, 2, 2]     # started at frames 2, 5, 8; lag 3
+    slow.pupil.wait()
+    fast.pupil.wait()

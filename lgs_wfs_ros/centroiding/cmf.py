@@ -128,7 +128,9 @@ class CMF(Centroider):
             (``set_reference``) | "model".
         pupil_async: refit in a background thread (the new reference, filter and response
             are built there and swapped in at a frame boundary; not reproducible frame for
-            frame) instead of inline at the end of each period (False).
+            frame) instead of inline at the end of each period (False); with
+            ``pupil_async_lag`` N > 0 each refit is installed exactly N frames after it
+            started (waited for if late): reproducible.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration's refit
             period (frames), memory (s) and accumulation stride (frames).
         history: frames in the history mean (5).

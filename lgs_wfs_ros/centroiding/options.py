@@ -72,6 +72,10 @@ _PUPIL = (
     ("pupil_async", False, "Refit in a background thread and swap the new references in at a "
      "frame boundary (a live node then never stalls for the ~1-4 s refit); false: inline at "
      "the end of each period, reproducible frame for frame (replay, benchmarks)."),
+    ("pupil_async_lag", 0, "With pupil_async: install each refit exactly this many frames after "
+     "the period end that started it, waiting then if it is late (reproducible: a replay gives "
+     "the live numbers), e.g. 700 = 1 s at 700 Hz; 0: whenever it is ready.",
+     {"low": 0, "high": 1000000}),
 )
 _HISTORY = (
     ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "

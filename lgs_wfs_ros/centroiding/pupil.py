@@ -75,15 +75,21 @@ class PupilCalibration:
             reproducible frame for frame: False (default) refits inline at the end of each
             period, deterministic (replay, benchmarks). While a refit runs, frames keep
             accumulating; the next one starts when it is installed (a period may grow).
+        lag: with ``asynchronous``, install each refit exactly ``lag`` frames after the
+            period end that started it, waiting for it then if it is late: reproducible
+            frame for frame (a replay gives the live numbers) and no stall as long as a
+            refit takes less than ``lag`` frames. 0: install whenever it is ready.
     """
 
     def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.5, stride: int = 1,
                  nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
-                 max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False):
+                 max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False,
+                 lag: int = 0):
         self.sensor = sensor
         if not isinstance(asynchronous, (bool, np.bool_)):
             raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
         self.asynchronous = bool(asynchronous)
+        self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
         self.payload = None
         self._pool = None
@@ -216,7 +222,10 @@ class PupilCalibration:
         installed on this frame)."""
         self._frames += 1
         if self.asynchronous:
-            installed = self._poll()
+            due = not self.lag or self._frames - self._taken_at >= self.lag
+            if self.lag and due and self._job is not None:
+                self._job.exception()                        # due now: wait if it is late
+            installed = self._poll() if due else False
             if self._job is None and self._frames - self._taken_at >= self.period:
                 self._start()
             return installed
@@ -441,7 +450,7 @@ _FIT_STATE = ("state", "flux", "_state_ok", "light", "fits", "version", "_refs",
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1,
-                   "pupil_async": False}
+                   "pupil_async": False, "pupil_async_lag": 0}
 
 
 def from_options(sensor, options: dict, background: float) -> PupilCalibration:
@@ -449,7 +458,8 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
     o = {**OPTION_DEFAULTS, **{k: v for k, v in options.items() if k in OPTION_DEFAULTS}}
     return PupilCalibration(sensor, period=o["pupil_period"],
                             time_constant_s=o["pupil_time_constant_s"], stride=o["pupil_stride"],
-                            background=background, asynchronous=o["pupil_async"])
+                            background=background, asynchronous=o["pupil_async"],
+                            lag=o["pupil_async_lag"])
 
 
 __all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
