@@ -56,6 +56,24 @@ def test_block_contract_equals_einsum():
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-3 * np.abs(want).max() * 1e-3)
 
 
+def test_filter_flux_equals_the_contraction_with_a_row_of_ones():
+    """The CMF's two filter rows plus the flux (the plain pixel sum, exact even for saturated
+    blocks) equal block_contract with [R; 1], per block."""
+    sensor = SENSORS[1]
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(8)
+    w = rng.normal(size=(lay.n_valid, 2, sensor.pixels ** 2)).astype(np.float32)
+    frame = _frame(sensor, 9, high=True)
+    ones = np.ones((lay.n_valid, 1, sensor.pixels ** 2), np.float32)
+    want = kernels.block_contract(frame, kernels.block_origins(lay), np.concatenate([w, ones], 1))
+    got = kernels.filter_flux(frame, kernels.block_origins(lay), w)
+    np.testing.assert_array_equal(got[:, 2], want[:, 2])
+    assert got[:, 2].max() > 65535 * sensor.pixels                  # a saturated block summed
+    np.testing.assert_allclose(got[:, :2], want[:, :2], rtol=1e-9, atol=1e-9 * np.abs(want).max())
+    with pytest.raises(ValueError, match="2 filter rows"):
+        kernels.filter_flux(frame, kernels.block_origins(lay), np.concatenate([w, ones], 1))
+
+
 def test_cmf_model_with_the_kernel_equals_cmf_without(monkeypatch):
     sensor = SENSORS[1]
     cmf = make_centroider("cmf", sensor, weighting="model", reference="model")

@@ -237,3 +237,81 @@ def test_frame_row_and_stack_accumulation_agree():
     np.testing.assert_allclose(cals[0].light, cals[2].light, atol=1e-9)
     np.testing.assert_allclose(cals[1].light, cals[2].light, atol=1e-6)
     np.testing.assert_allclose(cals[0].flux, cals[2].flux)
+
+
+def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
+    """pupil_async: while a refit is held in its thread, frames keep being centroided with
+    the old reference (none waits for it); once finished, the next frame installs it, and
+    that frame's slopes equal those of the inline (deterministic) mode, which refitted from
+    the same frames."""
+    import threading
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(5)
+    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
+              for _ in range(6)]
+    inline = table.build("cmf", s, {"pupil_period": 2})
+    live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True})
+    gate, prepare = threading.Event(), live.pupil.prepare
+    live.pupil.prepare = lambda cal: (gate.wait(60), prepare(cal))[1]
+    v0 = live.ref.version
+    ref_inline = [inline.centroid(f) for f in frames]
+    before = table.build("cmf", s, {"pupil_period": 1000})      # never refits
+    ref_before = [before.centroid(f) for f in frames]
+    for k, f in enumerate(frames[:5]):                           # the refit starts at frame 2
+        np.testing.assert_array_equal(live.centroid(f), ref_before[k])
+    assert live.pupil.fits == 0 and live.ref.version == v0 and not gate.is_set()
+    gate.set()
+    live.pupil.wait()
+    out = live.centroid(frames[2])                               # installs, then measures
+    assert live.pupil.fits == 1 and live.ref.version > v0
+    np.testing.assert_array_equal(out, ref_inline[2])
+    assert np.abs(out - ref_before[2]).max() > 1e-3              # the refit changed something
+    live.pupil.wait()
+
+
+def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
+    """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts is
+    the inline mode's, refitted from the same frames."""
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    frames = [sm.images(np.zeros((n, 2)))[0] * 1000.0 for _ in range(3)]
+    inline = table.build("cog", s, {"bias": "pupil", "pupil_period": 2})
+    live = table.build("cog", s, {"bias": "pupil", "pupil_period": 2, "pupil_async": True})
+    prior = live._bias.copy()
+    want = [inline.centroid(f) for f in frames]
+    live.centroid(frames[0])
+    live.centroid(frames[1])
+    live.pupil.wait()
+    got = live.centroid(frames[2])
+    assert live.pupil.fits == 1 and np.abs(live._bias - prior).max() > 0.03
+    np.testing.assert_array_equal(live._bias, inline._bias)
+    np.testing.assert_array_equal(got, want[2])
+    live.pupil.wait()
+
+
+def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
+    """pupil_async_lag: each refit is installed exactly lag frames after it started, so a
+    refit that is slow (held 0.3 s in its thread) and one that is not give the same slopes
+    frame for frame, and none before the lag."""
+    import time
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(6)
+    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
+              for _ in range(9)]
+    opts = {"pupil_period": 2, "pupil_async": True, "pupil_async_lag": 3}
+    fast, slow = table.build("cmf", s, opts), table.build("cmf", s, opts)
+    prepare = slow.pupil.prepare
+    slow.pupil.prepare = lambda cal: (time.sleep(0.3), prepare(cal))[1]
+    fits = []
+    for f in frames:
+        np.testing.assert_array_equal(fast.centroid(f), slow.centroid(f))
+        fits.append(slow.pupil.fits)
+        assert fast.pupil.fits == slow.pupil.fits
+    assert fits == [0, 0, 0, 0, 1, 1, 1, 2, 2]     # started at frames 2, 5, 8; lag 3
+    slow.pupil.wait()
+    fast.pupil.wait()

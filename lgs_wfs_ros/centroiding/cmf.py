@@ -28,11 +28,15 @@ for the 1.19 px core) is calibrated once on noise-free shifted references and in
 frame (:mod:`.linearize`), which makes the CMF exact to ~1e-3 px over +-1 px.
 
 Cost: with ``weighting="model"`` and a static reference (or ``update_period`` > 1 with
-model weighting) the per-frame work is one ``(n, 2, pp)`` contraction; the paper's
-setting (history reference, image weighting) rebuilds every filter every frame.
+model weighting) the per-frame work is one ``(n, 2, pp)`` contraction (compiled, with the
+flux, :func:`.kernels.filter_flux`) and, linearised, one compiled inversion pass
+(:func:`.kernels.invert_response`); the paper's setting (history reference, image
+weighting) rebuilds every filter every frame.
 """
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 
@@ -122,6 +126,11 @@ class CMF(Centroider):
             pupil, :mod:`.pupil`, with exact derivatives, refreshed every
             ``pupil_period`` frames) | "history" (the paper's) | "static"
             (``set_reference``) | "model".
+        pupil_async: refit in a background thread (the new reference, filter and response
+            are built there and swapped in at a frame boundary; not reproducible frame for
+            frame) instead of inline at the end of each period (False); with
+            ``pupil_async_lag`` N > 0 each refit is installed exactly N frames after it
+            started (waited for if late): reproducible.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration's refit
             period (frames), memory (s) and accumulation stride (frames).
         history: frames in the history mean (5).
@@ -198,6 +207,8 @@ class CMF(Centroider):
         if o["reference"] == "pupil":
             self.pupil = pupil_cal.from_options(sensor, o, self.background)
             self._install_pupil()
+            if self.pupil.asynchronous:      # the filter and its response built off the frame path
+                self.pupil.prepare = self._prepare_pupil
         if self.linearize and self._image_at is not None:
             self.calibrate_response()        # at construction, not on a live node's first frame
 
@@ -212,7 +223,38 @@ class CMF(Centroider):
         """Feed one frame's ``(n, p*p)`` counts (background included) to the calibration;
         a refit installs the new reference."""
         if self.pupil is not None and self.pupil.observe(flat):
+            self._pupil_refitted()
+
+    def _pupil_refitted(self) -> None:
+        """Install what a refit gives: inline, the reference (the filter and its response
+        are rebuilt lazily); from a background refit, the filter and response it built."""
+        payload, self.pupil.payload = self.pupil.payload, None
+        if payload is None:
             self._install_pupil()
+            return
+        payload["ref"].frames = self.ref.frames
+        self.__dict__.update(payload)
+
+    # what a background refit builds and the frame path swaps in (see _prepare_pupil)
+    _REFIT_STATE = ("ref", "A", "M", "_at_buf", "_ref_ok", "_ref_counts", "_built_version",
+                    "_model_R", "_response", "_response_version", "_image_at")
+
+    def _prepare_pupil(self, calibration) -> dict:
+        """Run in the refit thread on the refitted ``calibration`` (a snapshot): a shallow
+        copy of this centroider with its own reference, design buffers and filter builds
+        the new reference, filter and response calibration; returns the attributes to
+        swap in. Nothing the frame path uses is written."""
+        sh = copy.copy(self)
+        sh.pupil = calibration
+        sh.ref = copy.copy(self.ref)
+        sh._at_buf = sh._work = sh._model_R = None
+        sh._install_pupil()
+        sh._rebuild_design()
+        if sh.weighting == "model":
+            sh._model_filter()
+        if sh.linearize:
+            sh.calibrate_response()
+        return {k: sh.__dict__[k] for k in self._REFIT_STATE if k in sh.__dict__}
 
     def model_reference(self, sodium_fwhm_m: float) -> np.ndarray:
         """``(n, p, p)`` centred model spots, ``sensor.photons`` counts plus the background,
@@ -368,7 +410,8 @@ class CMF(Centroider):
         return r, ok & self._ref_ok, var
 
     def _model_filter(self):
-        """Cached model-weighted filter: (R, ok, var, [R; 1] float64, float32, R var R^T, R 1)."""
+        """Cached model-weighted filter: (R, ok, var, [R; 1] float64, float32, R var R^T, R 1,
+        R float32 (C-contiguous, for :func:`.kernels.filter_flux`))."""
         if self._built_version != self.ref.version:
             self._rebuild_design()
         if self._model_R is None:
@@ -376,7 +419,8 @@ class CMF(Centroider):
             r, ok = solve_filter(self.A, self.M, var)
             r3 = np.concatenate([r, np.ones((self.n, 1, r.shape[2]))], axis=1)
             q = np.einsum("nkp,np,nlp->nkl", r, var, r)
-            self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2))
+            self._model_R = (r, ok & self._ref_ok, var, r3, r3.astype(np.float32), q, r.sum(axis=2),
+                             r.astype(np.float32))
         return self._model_R
 
     def _stack_products(self, data):
@@ -408,23 +452,24 @@ class CMF(Centroider):
             if self.pupil is not None:
                 if raw.shape == self.sensor.frame_shape:
                     if self.pupil.observe_frame(raw):        # integer accumulation, no copy
-                        self._install_pupil()
+                        self._pupil_refitted()
                 else:
                     flat = self.as_stack(raw).reshape(self.n, -1)
                     self._observe_pupil(flat)
             self.ref.observe(None, None)
-            r, fok, _, r3, r3_32, q, rsum = self._model_filter()
+            r, fok, _, r3, r3_32, q, rsum, r_32 = self._model_filter()
             stack = kernels.stack_view(raw, self.n, self.p)
             if kernels.fits(raw, self.sensor.frame_shape):     # compiled, one pass, in place
-                m = kernels.block_contract(raw, kernels.origins(self), r3_32)
+                # R's two rows and a plain pixel sum for the flux: no row of ones to read
+                m = kernels.filter_flux(raw, kernels.origins(self), r_32)
             elif stack is not None:                            # the same sums for a stack
-                m = kernels.block_contract(stack, kernels.stack_origins(self.n, self.p), r3_32)
+                m = kernels.filter_flux(stack, kernels.stack_origins(self.n, self.p), r_32)
             else:
                 if flat is None:
                     flat = self.as_stack(raw).reshape(self.n, -1)
                 m = np.einsum("nkp,np->nk", r3_32, flat).astype(np.float64)
         else:
-            m, (r, fok, _, r3, r3_32, q, rsum) = self._stack_products(data)
+            m, (r, fok, _, r3, r3_32, q, rsum, _) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p
         ok = np.isfinite(m).all(axis=1) & (m[:, 2] > 0) & (flux > 0) & fok
         with np.errstate(divide="ignore", invalid="ignore"):

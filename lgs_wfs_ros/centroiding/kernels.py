@@ -9,6 +9,11 @@ in registers. Outside the pupil nothing is read.
   exact integer sums for integer frames (what ``rows @ [1, x, y]`` gives in float).
 - :func:`block_contract`: ``(n, k)`` per-block weights times pixels (a CMF filter
   ``[R; 1]`` of ``(n, k, p*p)``), float32 weights times pixels summed in float64.
+- :func:`filter_flux`: as :func:`block_contract` for the CMF's ``R`` ``(n, 2, p*p)`` plus
+  each block's pixel sum (the flux), 2/3 of the weight traffic of ``[R; 1]``.
+- :func:`invert_response`: the linearisation's per-subaperture inversion of a 2-D
+  Chebyshev response (:mod:`.linearize`): polynomial start and Newton steps, one pass per
+  subaperture in registers (numpy needs a dozen ``(n, 2, D, D)`` passes and ~50 calls).
 
 numba is optional (the ``fast`` extra): :data:`AVAILABLE` says whether these run; callers
 keep their numpy path for when it is False. Shapes: frames ``(G*p, G*p)``; ``origins``
@@ -116,8 +121,143 @@ def _block_contract_impl(frame, origins, p, weights, out):
             out[b, q] = acc
 
 
+def _filter_flux_impl(frame, origins, p, weights, out):
+    # the CMF's two filter rows and a plain pixel sum (the flux row of [R; 1] without reading
+    # 4 bytes of ones per pixel), all in one pass over each block's pixels
+    n = origins.shape[0]
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        w0 = weights[b, 0]
+        w1 = weights[b, 1]
+        tot = 0
+        a0 = 0.0
+        a1 = 0.0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            o = i * p
+            for j in range(p):
+                v = row[j]
+                tot += np.int64(v)
+                x = np.float64(v)
+                a0 += np.float64(w0[o + j]) * x
+                a1 += np.float64(w1[o + j]) * x
+        out[b, 0] = a0
+        out[b, 1] = a1
+        out[b, 2] = tot
+
+
+def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_out, jac_out):
+    # coef (n, 2, D, D) [out, x degree, y degree]; guess (n, K, 2) monomials x^i y^(d-i)
+    n = m.shape[0]
+    nd = coef.shape[3]
+    tx = np.empty(nd)
+    dx = np.empty(nd)
+    ty = np.empty(nd)
+    dy = np.empty(nd)
+    xp = np.empty(gdeg + 1)
+    yp = np.empty(gdeg + 1)
+    inv_e = 1.0 / extent
+    for b in range(n):
+        mx = m[b, 0]
+        my = m[b, 1]
+        if gdeg >= 0:
+            xp[0] = 1.0
+            yp[0] = 1.0
+            for d in range(1, gdeg + 1):
+                xp[d] = xp[d - 1] * mx
+                yp[d] = yp[d - 1] * my
+            sx = 0.0
+            sy = 0.0
+            k = 0
+            for d in range(gdeg + 1):
+                for i in range(d + 1):
+                    mono = xp[i] * yp[d - i]
+                    sx += mono * guess[b, k, 0]
+                    sy += mono * guess[b, k, 1]
+                    k += 1
+        else:
+            sx = mx
+            sy = my
+        if not np.isfinite(sx):
+            sx = 0.0 if np.isnan(sx) else sx
+        if not np.isfinite(sy):
+            sy = 0.0 if np.isnan(sy) else sy
+        sx = min(max(sx, -extent), extent)
+        sy = min(max(sy, -extent), extent)
+        j00 = j01 = j10 = j11 = 0.0
+        for _ in range(iterations):
+            ux = sx * inv_e
+            uy = sy * inv_e
+            tx[0] = 1.0
+            dx[0] = 0.0
+            ty[0] = 1.0
+            dy[0] = 0.0
+            if nd > 1:
+                tx[1] = ux
+                dx[1] = 1.0
+                ty[1] = uy
+                dy[1] = 1.0
+            for q in range(2, nd):
+                tx[q] = 2 * ux * tx[q - 1] - tx[q - 2]
+                dx[q] = 2 * ux * dx[q - 1] + 2 * tx[q - 1] - dx[q - 2]
+                ty[q] = 2 * uy * ty[q - 1] - ty[q - 2]
+                dy[q] = 2 * uy * dy[q - 1] + 2 * ty[q - 1] - dy[q - 2]
+            f0 = 0.0
+            f1 = 0.0
+            j00 = 0.0
+            j01 = 0.0
+            j10 = 0.0
+            j11 = 0.0
+            for i in range(nd):
+                c0 = 0.0
+                c0d = 0.0
+                c1 = 0.0
+                c1d = 0.0
+                for j in range(nd):
+                    c0 += coef[b, 0, i, j] * ty[j]
+                    c0d += coef[b, 0, i, j] * dy[j]
+                    c1 += coef[b, 1, i, j] * ty[j]
+                    c1d += coef[b, 1, i, j] * dy[j]
+                f0 += c0 * tx[i]
+                f1 += c1 * tx[i]
+                j00 += c0 * dx[i]
+                j01 += c0d * tx[i]
+                j10 += c1 * dx[i]
+                j11 += c1d * tx[i]
+            j00 *= inv_e
+            j01 *= inv_e
+            j10 *= inv_e
+            j11 *= inv_e
+            r0 = f0 - mx
+            r1 = f1 - my
+            det = j00 * j11 - j01 * j10
+            sx = sx - (j11 * r0 - j01 * r1) / det
+            sy = sy - (j00 * r1 - j10 * r0) / det
+        det = j00 * j11 - j01 * j10
+        if abs(sx) <= extent and abs(sy) <= extent and det > min_det:
+            s_out[b, 0] = sx
+            s_out[b, 1] = sy
+            jac_out[b, 0, 0] = j00
+            jac_out[b, 0, 1] = j01
+            jac_out[b, 1, 0] = j10
+            jac_out[b, 1, 1] = j11
+        else:
+            s_out[b, 0] = mx
+            s_out[b, 1] = my
+            jac_out[b, 0, 0] = 1.0
+            jac_out[b, 0, 1] = 0.0
+            jac_out[b, 1, 0] = 0.0
+            jac_out[b, 1, 1] = 1.0
+
+
 if AVAILABLE:
+    # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
+    # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
+    _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
+                                  fastmath={"contract", "reassoc", "nsz", "arcp"})(_invert_response_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
+    _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
     _block_contract = numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
 
 
@@ -145,6 +285,48 @@ def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
     return out
 
 
+def filter_flux(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 3)`` float64: :func:`block_contract` of the ``(n, 2, p*p)`` float32 filter rows,
+    then each block's plain pixel sum (what a row of ones gives, read for free)."""
+    n, k, pp = weights.shape
+    if k != 2:
+        raise ValueError(f"filter_flux takes 2 filter rows, got {k}")
+    p = int(round(pp ** 0.5))
+    if out is None:
+        out = np.empty((n, k + 1))
+    _filter_flux(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
+    return out
+
+
+def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m: np.ndarray,
+                    iterations: int, min_det: float) -> tuple[np.ndarray, np.ndarray]:
+    """Shifts ``s (n, 2)`` px with ``f(s) = m`` and ``df/ds (n, 2, 2)`` there, as
+    :meth:`.linearize.ResponseMap.invert` (float64 throughout).
+
+    Args:
+        coef: ``(n, 2, D, D)`` float64 Chebyshev coefficients (output, x degree, y degree)
+            over ``[-extent, extent]^2`` px.
+        guess: ``(n, K, 2)`` float64 start polynomial in the monomials ``x^i y^(d-i)``
+            (d = 0..degree, i = 0..d), or None (start at ``m``).
+        m: ``(n, 2)`` measurements, px.
+        iterations: Newton steps (>= 1).
+        min_det: smallest accepted Jacobian determinant; below it, or outside the box,
+            ``m`` is returned with an identity Jacobian.
+    """
+    m = np.ascontiguousarray(m, dtype=np.float64)
+    n = m.shape[0]
+    if guess is None:
+        guess, gdeg = np.zeros((n, 1, 2)), -1
+    else:
+        gdeg = int(round((np.sqrt(8 * guess.shape[1] + 1) - 3) / 2))
+    s = np.empty((n, 2))
+    jac = np.empty((n, 2, 2))
+    _invert_response(coef, float(extent), guess, gdeg, m, max(int(iterations), 1),
+                     float(min_det), s, jac)
+    return s, jac
+
+
 _warm = False
 
 
@@ -158,4 +340,6 @@ def warm_up() -> None:
     o = np.zeros((1, 2), np.int64)
     cog_moments(frame, o, 4, 1.5)
     block_contract(frame, o, np.zeros((1, 3, 16), np.float32))
+    filter_flux(frame, o, np.zeros((1, 2, 16), np.float32))
+    invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     _warm = True

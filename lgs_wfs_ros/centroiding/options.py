@@ -69,6 +69,13 @@ _PUPIL = (
      "average of the mean images; 0: each period alone), e.g. 0.5.", {"low": 0.0, "high": 3600.0}),
     ("pupil_stride", 1, "Frames between frames added to the pupil calibration's mean images "
      "(1: every frame), e.g. 2 halves its per-frame cost.", {"low": 1, "high": 10000}),
+    ("pupil_async", False, "Refit in a background thread and swap the new references in at a "
+     "frame boundary (a live node then never stalls for the ~1-4 s refit); false: inline at "
+     "the end of each period, reproducible frame for frame (replay, benchmarks)."),
+    ("pupil_async_lag", 0, "With pupil_async: install each refit exactly this many frames after "
+     "the period end that started it, waiting then if it is late (reproducible: a replay gives "
+     "the live numbers), e.g. 700 = 1 s at 700 Hz; 0: whenever it is ready.",
+     {"low": 0, "high": 1000000}),
 )
 _HISTORY = (
     ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "

@@ -34,7 +34,9 @@ tilts) averages out or shows up as residual.
 
 from __future__ import annotations
 
+import copy
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.linalg import cho_factor, solve_triangular
@@ -66,12 +68,32 @@ class PupilCalibration:
         max_shift_px: largest shift the reference renderer must handle (linearisation).
         background: counts per pixel in the frames given to :meth:`observe`, removed from
             the mean images.
+        asynchronous: run each refit in a background thread on a snapshot of the period's
+            accumulated frames and install its result at the first frame boundary after it
+            finishes (:meth:`observe` returns True on that frame); the frame path only swaps
+            buffers. The install frame then depends on timing, so results are not
+            reproducible frame for frame: False (default) refits inline at the end of each
+            period, deterministic (replay, benchmarks). While a refit runs, frames keep
+            accumulating; the next one starts when it is installed (a period may grow).
+        lag: with ``asynchronous``, install each refit exactly ``lag`` frames after the
+            period end that started it, waiting for it then if it is late: reproducible
+            frame for frame (a replay gives the live numbers) and no stall as long as a
+            refit takes less than ``lag`` frames. 0: install whenever it is ready.
     """
 
     def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.5, stride: int = 1,
                  nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
-                 max_shift_px: float = 2.0, background: float = 0.0):
+                 max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False,
+                 lag: int = 0):
         self.sensor = sensor
+        if not isinstance(asynchronous, (bool, np.bool_)):
+            raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
+        self.asynchronous = bool(asynchronous)
+        self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
+        self.prepare = None          # optional callable(calibration) -> payload, run by _work
+        self.payload = None
+        self._pool = None
+        self._job = None
         self.background = number("background", background, minimum=0)
         self.layout = geometry.layout(sensor)
         self.n = self.layout.n_valid
@@ -96,7 +118,13 @@ class PupilCalibration:
 
     # -- state ------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget everything seen: back to the prior profile."""
+        """Forget everything seen: back to the prior profile (a refit under way is waited
+        for and dropped)."""
+        if getattr(self, "_job", None) is not None:
+            self._job.exception()
+            self._job = None
+        self.payload = None
+        self._taken_at = 0
         self._acc = np.zeros((self.n, self.sensor.pixels ** 2))
         self._acc_rows = None                    # (G*G, p*p) float32, see observe_rows
         self._acc_frame = None                   # a detector frame's shape, see observe_frame
@@ -190,27 +218,93 @@ class PupilCalibration:
         return self._tick()
 
     def _tick(self) -> bool:
-        """Count a frame; refit at the end of a period (returns True then)."""
+        """Count a frame; refit at the end of a period (returns True when a refit was
+        installed on this frame)."""
         self._frames += 1
+        if self.asynchronous:
+            due = not self.lag or self._frames - self._taken_at >= self.lag
+            if self.lag and due and self._job is not None:
+                self._job.exception()                        # due now: wait if it is late
+            installed = self._poll() if due else False
+            if self._job is None and self._frames - self._taken_at >= self.period:
+                self._start()
+            return installed
         if self._frames % self.period == 0:
             self.refit()
             return True
         return False
 
     # -- fit --------------------------------------------------------------------------
-    def refit(self) -> None:
-        """Blend the accumulated mean images into the average and refit the profile."""
+    def _take(self) -> tuple:
+        """Hand over the accumulators (fresh zero ones stay): ``(acc, count, acc_frame,
+        acc_rows, rows_index, frames since the last take)``."""
+        snap = (self._acc, self._count, self._acc_frame, self._acc_rows,
+                getattr(self, "_rows_index", None), self._frames - self._taken_at)
+        self._acc = np.zeros_like(self._acc)
+        self._count = np.zeros_like(self._count)
         if self._acc_frame is not None:
-            stack = geometry.frame_to_stack(self._acc_frame, self.layout)
-            self._acc += stack.reshape(self.n, -1)
-            self._acc_frame[:] = 0
+            self._acc_frame = np.zeros_like(self._acc_frame)
         if self._acc_rows is not None:
-            self._acc += self._acc_rows[self._rows_index]
-            self._acc_rows[:] = 0.0
-        good = (self._count > 0) & np.isfinite(self._acc).all(axis=1)
+            self._acc_rows = np.zeros_like(self._acc_rows)
+        self._taken_at = self._frames
+        return snap
+
+    def refit(self) -> None:
+        """Blend the accumulated mean images into the average and refit the profile, now
+        (inline, whatever ``asynchronous`` says)."""
+        snap = self._take()
+        if not self._fit(snap, self.period):                 # nothing usable: keep it
+            self._acc += snap[0]
+            self._count += snap[1]
+
+    def _start(self) -> None:
+        """Start a background refit on a snapshot: a copy of the fit state works on the
+        taken accumulators, then ``prepare`` (if set) runs on it in the same thread."""
+        clone = copy.copy(self)
+        for name in ("state", "flux", "_state_ok", "light"):
+            value = getattr(self, name)
+            setattr(clone, name, None if value is None else value.copy())
+        clone._pool = clone._job = None
+        snap = self._take()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pupil-refit")
+        self._job = self._pool.submit(self._work, clone, snap)
+
+    def _work(self, clone, snap):
+        clone._fit(snap, snap[-1])
+        clone.reference()                                    # rendered here, not on a frame
+        return clone, (self.prepare(clone) if self.prepare is not None else None)
+
+    def _poll(self) -> bool:
+        """Install a finished background refit (fit state and ``payload``); True if so."""
+        if self._job is None or not self._job.done():
+            return False
+        clone, payload = self._job.result()                  # re-raises a refit's error
+        self._job = None
+        for name in _FIT_STATE:
+            if name in clone.__dict__:
+                setattr(self, name, clone.__dict__[name])
+        self.payload = payload
+        return True
+
+    def wait(self) -> None:
+        """Block until a background refit under way has finished (offline use: tests, a
+        replay that wants a given install frame); the next observed frame installs it."""
+        if self._job is not None:
+            self._job.exception()
+
+    def _fit(self, snap: tuple, frames: int) -> bool:
+        """Refit from a :meth:`_take` snapshot covering ``frames`` frames; False if it held
+        no usable subaperture (nothing changed)."""
+        acc, count, acc_frame, acc_rows, rows_index, _ = snap
+        if acc_frame is not None:
+            acc += geometry.frame_to_stack(acc_frame, self.layout).reshape(self.n, -1)
+        if acc_rows is not None:
+            acc += acc_rows[rows_index]
+        good = (count > 0) & np.isfinite(acc).all(axis=1)
         if not good.any():
-            return
-        mean = self._acc / np.maximum(self._count, 1)[:, None] - self.background
+            return False
+        mean = acc / np.maximum(count, 1)[:, None] - self.background
         proj = self.projection(mean)                                            # (n, nb)
         tot = proj.sum(axis=1)
         good &= np.isfinite(tot) & (tot > 0)
@@ -220,7 +314,7 @@ class PupilCalibration:
             self.state, self.flux = z, np.where(good, tot, self.sensor.photons)
         else:
             rate = self.sensor.frame_rate_hz
-            a = math.exp(-self.period / (self.time_constant_s * rate)) if self.time_constant_s > 0 else 0.0
+            a = math.exp(-frames / (self.time_constant_s * rate)) if self.time_constant_s > 0 else 0.0
             fresh = good & ~self._state_ok
             blend = good & self._state_ok
             self.state[blend] = a * self.state[blend] + (1 - a) * z[blend]
@@ -229,11 +323,10 @@ class PupilCalibration:
             self.flux[fresh] = tot[fresh]
         self._state_ok |= good
         self.light = self.solve(self.state, self._state_ok, self.light)
-        self._acc[:] = 0.0
-        self._count[:] = 0.0
         self.fits += 1
         self.version += 1
         self._refs = None
+        return True
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
@@ -351,8 +444,13 @@ class PupilCalibration:
                 "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
 
 
+# What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
+_FIT_STATE = ("state", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
+              "_basis", "_colsum", "_gram", "_rough", "_spread")
+
 # Options every estimator that uses the calibration takes (names as in options.py).
-OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1}
+OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1,
+                   "pupil_async": False, "pupil_async_lag": 0}
 
 
 def from_options(sensor, options: dict, background: float) -> PupilCalibration:
@@ -360,7 +458,8 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
     o = {**OPTION_DEFAULTS, **{k: v for k, v in options.items() if k in OPTION_DEFAULTS}}
     return PupilCalibration(sensor, period=o["pupil_period"],
                             time_constant_s=o["pupil_time_constant_s"], stride=o["pupil_stride"],
-                            background=background)
+                            background=background, asynchronous=o["pupil_async"],
+                            lag=o["pupil_async_lag"])
 
 
 __all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
