@@ -124,15 +124,10 @@ def _block_contract_impl(frame, origins, p, weights, out):
 def _filter_flux_impl(frame, origins, p, weights, out):
     # the CMF's two filter rows and a plain pixel sum (the flux row of [R; 1] without reading
     # 4 bytes of ones per pixel), all in one pass over each block's pixels
-    n = origins.shape[0]
-    for b in range(n):
-        r0 = origins[b, 0]
-        c0 = origins[b, 1]
-        w0 = weights[b, 0]
-        w1 = weights[b, 1]
-        tot = 0
-        a0 = 0.0
-        a1 = 0.0
+    for b in range(origins.shape[0]):
+        r0, c0 = origins[b, 0], origins[b, 1]
+        w0, w1 = weights[b, 0], weights[b, 1]
+        tot, a0, a1 = 0, 0.0, 0.0
         for i in range(p):
             row = frame[r0 + i, c0:c0 + p]
             o = i * p
