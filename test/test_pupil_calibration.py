@@ -239,18 +239,24 @@ def test_frame_row_and_stack_accumulation_agree():
     np.testing.assert_allclose(cals[0].flux, cals[2].flux)
 
 
+def _narrow_polar_frames(seed: int, count: int):
+    """The small polar sensor and ``count`` noisy frames (1000 ph) of the narrow family with
+    independent tilts of 0.3 px rms."""
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "narrow")
+    rng = np.random.default_rng(seed)
+    return s, [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
+               for _ in range(count)]
+
+
 def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
     """pupil_async: while a refit is held in its thread, frames keep being centroided with
     the old reference (none waits for it); once finished, the next frame installs it, and
     that frame's slopes equal those of the inline (deterministic) mode, which refitted from
     the same frames."""
     import threading
-    s = SMALL.replace(detector="polar")
-    n = geometry.layout(s).n_valid
-    _, _, sm = true_spots(s, "narrow")
-    rng = np.random.default_rng(5)
-    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
-              for _ in range(6)]
+    s, frames = _narrow_polar_frames(seed=5, count=6)
     inline = table.build("cmf", s, {"pupil_period": 2})
     live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True})
     gate, prepare = threading.Event(), live.pupil.prepare
@@ -297,12 +303,7 @@ def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
     refit that is slow (held 0.3 s in its thread) and one that is not give the same slopes
     frame for frame, and none before the lag."""
     import time
-    s = SMALL.replace(detector="polar")
-    n = geometry.layout(s).n_valid
-    _, _, sm = true_spots(s, "narrow")
-    rng = np.random.default_rng(6)
-    frames = [rng.poisson(sm.images(rng.normal(0, 0.3, (n, 2)))[0] * 1000.0).astype(float)
-              for _ in range(9)]
+    s, frames = _narrow_polar_frames(seed=6, count=9)
     opts = {"pupil_period": 2, "pupil_async": True, "pupil_async_lag": 3}
     fast, slow = table.build("cmf", s, opts), table.build("cmf", s, opts)
     prepare = slow.pupil.prepare
