@@ -130,13 +130,15 @@ def _zero_blocks(frame, rows, cols, p):
             frame[rows[b] * p + a, c0:c0 + p] = 0
 
 
-def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, zcols,
-                  photons, per_field, noise, integer, seed, frame, trunc):
+def _render_polar(tab, der, tab2, der2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows,
+                  zcols, photons, per_field, noise, integer, seed, frame, trunc):
     """Compiled: every valid block of ``frame`` (rows local y, columns local x) from the
-    line tables and the core, Poisson-drawn (or expected counts if not ``noise``); the
-    blocks ``(zrows, zcols)`` outside the pupil are zeroed. Returns saturated pixels."""
+    line tables (``(1 - wb) tab + wb tab2``: two profiles' unit-light lines blended) and
+    the core, Poisson-drawn (or expected counts if not ``noise``); the blocks ``(zrows,
+    zcols)`` outside the pupil are zeroed. Returns saturated pixels."""
     x = detector._seed_state(seed)
     cum = np.empty(p + 1)
+    cum2 = np.empty(p + 1)
     emin = np.empty(p + 1)
     line = np.empty(p)
     gmin = np.empty(p)
@@ -144,6 +146,10 @@ def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, z
     half = p / 2.0
     for i in range(rows.size):
         _hermite_edges(tab[i], der[i], -H * half - d0 - H * s_maj[i], p + 1, H, cum)
+        if wb > 0.0:
+            _hermite_edges(tab2[i], der2[i], -H * half - d0 - H * s_maj[i], p + 1, H, cum2)
+            for j in range(p + 1):
+                cum[j] += wb * (cum2[j] - cum[j])
         _hermite_edges(kp, kd, q - H * half - H * s_min[i], p + 1, H, emin)
         sl = 0.0
         sm = 0.0
@@ -319,9 +325,15 @@ class CartesianNodes:
 class FastRenderer:
     """Frames of one layout written straight into a ``(G p, G p)`` buffer.
 
+    Each spot model's table (:class:`PolarTable` or :class:`CartesianNodes`) is built on
+    first use and kept for the last :attr:`KEEP` models, so a profile that changes every
+    N frames, or blends between two knots, pays its table once.
+
     Args:
         lay: the sensor layout (valid blocks and their rows/columns).
     """
+
+    KEEP = 4
 
     def __init__(self, lay):
         self.sensor = lay.sensor
@@ -330,8 +342,7 @@ class FastRenderer:
         zr, zc = np.nonzero(~lay.valid)
         self.rows, self.cols = rows.astype(np.int64), cols.astype(np.int64)
         self.zrows, self.zcols = zr.astype(np.int64), zc.astype(np.int64)
-        self._table = None
-        self._model = None
+        self._tables = {}                               # id(model) -> (model, table)
         self._images = None
 
     def _check(self, out):
@@ -339,49 +350,76 @@ class FastRenderer:
         if out.shape != s.frame_shape or out.dtype != np.dtype(s.dtype):
             raise ValueError(f"out must be {s.frame_shape} {s.dtype}, got {out.shape} {out.dtype}")
 
-    def render(self, model: SpotModel, truth, out, photons, seed, noise=True, per_field=True):
+    def table(self, model: SpotModel):
+        """The model's table, built on first use (safe to call from a prefetch thread)."""
+        hit = self._tables.get(id(model))
+        if hit is not None and hit[0] is model:
+            return hit[1]
+        table = PolarTable(model) if model.polar else CartesianNodes(model)
+        self._tables[id(model)] = (model, table)
+        while len(self._tables) > self.KEEP:
+            self._tables.pop(next(iter(self._tables)))
+        return table
+
+    def render(self, model: SpotModel, truth, out, photons, seed, noise=True, per_field=True,
+               blend=None):
         """Write one frame into ``out``; returns ``(truncated (n,), saturated)``.
 
         Args:
-            model: the profile's spot model (its table is built on first use, cached).
+            model: the profile's spot model.
             truth: ``(n, 2)`` true displacements, px, detector axes (``|.| <=
                 model.max_shift_px``).
             out: ``sensor.frame_shape`` array of the sensor's dtype.
             photons: expected photons per subaperture (in the field if ``per_field``).
             seed: int seed of this frame's draws.
+            blend: optional ``(model_b, wb)``: the light is ``(1 - wb)`` of ``model``'s
+                unit-light spots plus ``wb`` of ``model_b``'s (same ``max_shift_px``),
+                ``0 <= wb <= 1``: a profile between two knots without a model of its own.
         """
         self._check(out)
         integer = out.dtype == np.uint16
         p = self.sensor.pixels
+        model_b, wb = blend if blend is not None else (model, 0.0)
+        if not 0.0 <= wb <= 1.0 or model_b.max_shift_px != model.max_shift_px \
+                or model_b.polar != model.polar:
+            raise ValueError("blend needs 0 <= wb <= 1 and a model_b of the same detector "
+                             "and max_shift_px")
+        t, t2 = self.table(model), self.table(model_b)
         if model.polar:
-            if self._model is not model:
-                self._table, self._model = PolarTable(model), model
             loc = detector_to_local(np.asarray(truth, dtype=float), self.e)
             kp, kd, q = core_kernels(model.sigma_px)
             trunc = np.empty(self.rows.size)
-            t = self._table
-            sat = _render_polar(t.tab, t.der, t.d0, np.ascontiguousarray(loc[:, 0]),
-                                np.ascontiguousarray(loc[:, 1]), kp, kd, q, p, self.rows,
-                                self.cols, self.zrows, self.zcols, float(photons),
-                                bool(per_field), bool(noise), bool(integer), int(seed), out, trunc)
+            sat = _render_polar(t.tab, t.der, t2.tab, t2.der, float(wb), t.d0,
+                                np.ascontiguousarray(loc[:, 0]), np.ascontiguousarray(loc[:, 1]),
+                                kp, kd, q, p, self.rows, self.cols, self.zrows, self.zcols,
+                                float(photons), bool(per_field), bool(noise), bool(integer),
+                                int(seed), out, trunc)
             return trunc, int(sat)
-        if self._model is not model:
-            self._table, self._model = CartesianNodes(model), model
-        t = self._table
-        truth = np.asarray(truth, dtype=float)
-        s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
-        s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
         if self._images is None:
             self._images = np.empty((self.rows.size, p, p))
-        images, trunc = self._images, np.empty(self.rows.size)
-        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
-        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
-                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, p,
-                          images, trunc)
+        images, trunc = self._cartesian(model, t, truth, self._images)
+        if wb > 0.0:
+            images_b, trunc_b = self._cartesian(model_b, t2, truth)
+            images += wb * (images_b - images)
+            trunc += wb * (trunc_b - trunc)
         sat = _expose_blocks(images, p, self.rows, self.cols, self.zrows, self.zcols,
                              float(photons), bool(per_field), bool(noise), bool(integer),
                              int(seed), out)
         return trunc, int(sat)
+
+    def _cartesian(self, model, t, truth, images=None):
+        """Noise-free ``(images (n, p, p), truncated (n,))`` of a cartesian model."""
+        p = self.sensor.pixels
+        truth = np.asarray(truth, dtype=float)
+        s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
+        s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
+        images = np.empty((self.rows.size, p, p)) if images is None else images
+        trunc = np.empty(self.rows.size)
+        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
+        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
+                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, p,
+                          images, trunc)
+        return images, trunc
 
 
 __all__ = ["FastRenderer", "PolarTable", "core_kernels", "H", "AVAILABLE"]

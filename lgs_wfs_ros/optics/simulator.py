@@ -30,6 +30,7 @@ from ..sensor import Sensor
 from . import fast_frames, sodium
 from .detector import UINT16_MAX, expose
 from .geometry import layout, stack_to_frame
+from .knot_models import KnotModels
 from .spots import SpotModel
 
 PROFILE_SOURCES = ("centred", "uncentred", "measured", "evolving", "random", "gaussian",
@@ -188,6 +189,8 @@ class Simulator:
         if self.fast and fast_frames.AVAILABLE and sensor.read_noise_e == 0 \
                 and sensor.background_e == 0:
             self._renderer = fast_frames.FastRenderer(self.layout)
+            self._knots = KnotModels(self._build_knot)
+            self._margin = 3.0
         self.altitude_m, self._static = self._profile_setup()
         for a in (self.altitude_m, self._static):          # shared by every Frame: read-only
             if a is not None:
@@ -233,13 +236,18 @@ class Simulator:
             return self._evolving.at(t), ("evolving", index)
         epoch = index // c.random_every
         if self._random_epoch != epoch:
-            ss = self._profile_ss
-            rng = np.random.default_rng(np.random.SeedSequence(
-                ss.entropy, spawn_key=tuple(ss.spawn_key) + (int(epoch),)))
-            self._random_profile = self.model().sample(rng, 1, self.altitude_m)[0]
-            self._random_profile.setflags(write=False)
+            self._random_profile = self._random_draw(epoch)
             self._random_epoch = epoch
         return self._random_profile, ("random", epoch)
+
+    def _random_draw(self, epoch: int) -> np.ndarray:
+        """The random profile of ``epoch`` (its own seeded stream: a pure function)."""
+        ss = self._profile_ss
+        rng = np.random.default_rng(np.random.SeedSequence(
+            ss.entropy, spawn_key=tuple(ss.spawn_key) + (int(epoch),)))
+        density = self.model().sample(rng, 1, self.altitude_m)[0]
+        density.setflags(write=False)
+        return density
 
     # -- displacements -------------------------------------------------------------------
     def truth_at(self, index: int) -> np.ndarray:
@@ -267,6 +275,52 @@ class Simulator:
             self._spots_key = key
         return self._spots
 
+    def _knot_margin(self, truth) -> float:
+        """Shift margin of the fast path's knot models (px): grows, never shrinks, so the
+        two blended knots always share it."""
+        need = float(np.abs(truth).max()) if truth.size else 0.0
+        if need > self._margin:
+            self._margin = max(3.0, math.ceil(need) + 1.0)
+        return self._margin
+
+    def _build_knot(self, density, margin) -> SpotModel:
+        """A knot's spot model and its render table (run ahead by :class:`KnotModels`)."""
+        lay = self.layout
+        model = SpotModel(self.sensor, lay.r_m, lay.e, self.altitude_m, density, margin)
+        self._renderer.table(model)
+        return model
+
+    def _fused_models(self, i, truth, density, key):
+        """``(model, blend)`` for :meth:`FastRenderer.render` on frame ``i``.
+
+        Evolving: the two measured knots around the frame's time, blended with the weight
+        that makes the light the blended density's (unit-light models weighted by each
+        knot's column), the next knot built ahead. Random redrawn every N > 1 frames: the
+        epoch's model, the next epoch's built ahead. Otherwise the frame's own model."""
+        c = self.config
+        if c.profile == "evolving":
+            evo = self._evolving
+            a, b, w = (v[0] for v in evo.knots_at(np.array([i / self.sensor.frame_rate_hz])))
+            a, b, w = int(a), int(b), float(w)
+            margin = self._knot_margin(truth)
+            model = self._knots.get(("knot", a), lambda: evo.knot(a), margin)
+            nxt = evo.next_knot(b)
+            blend = None
+            if b != a and w > 0.0:
+                model_b = self._knots.get(("knot", b), lambda: evo.knot(b), margin)
+                ca, cb = evo.knot_column(a), evo.knot_column(b)
+                blend = (model_b, w * cb / ((1.0 - w) * ca + w * cb))
+            self._knots.prefetch(("knot", nxt), lambda: evo.knot(nxt), margin)
+            return model, blend
+        if c.profile == "random" and c.random_every > 1:
+            epoch = i // c.random_every
+            margin = self._knot_margin(truth)
+            model = self._knots.get(("random", epoch), lambda: density, margin)
+            self._knots.prefetch(("random", epoch + 1), lambda: self._random_draw(epoch + 1),
+                                 margin)
+            return model, None
+        return self.spot_model(density, key, truth), None
+
     def next(self, out: np.ndarray | None = None) -> Frame:
         """The next frame; with ``out`` (a ``sensor.frame_shape`` array of the sensor's dtype,
         e.g. a transport's loaned buffer) the frame is written there and ``Frame.frame`` is
@@ -293,9 +347,9 @@ class Simulator:
         s = self.sensor
         buf = np.empty(s.frame_shape, dtype=s.dtype) if out is None else out
         seed = int(self._noise_rng.integers(2**31 - 1)) if self.config.noise else 0
-        trunc, sat = self._renderer.render(self.spot_model(density, key, truth), truth, buf,
-                                           s.photons, seed, self.config.noise,
-                                           self.config.per_field)
+        model, blend = self._fused_models(i, truth, density, key)
+        trunc, sat = self._renderer.render(model, truth, buf, s.photons, seed, self.config.noise,
+                                           self.config.per_field, blend)
         self.index += 1
         return Frame(buf, truth, i, i / s.frame_rate_hz, trunc, density, self.altitude_m, sat)
 

@@ -816,6 +816,7 @@ class EvolvingProfile:
         self.end = end
         # knots extended by the first profile for wrapping
         self._knots = np.concatenate([self.profiles, self.profiles[:1]]) if end == "wrap" else self.profiles
+        self._knots.setflags(write=False)
 
     @classmethod
     def measured(cls, seconds_per_profile: float = 1.0, end: str = "clamp", path=None) -> "EvolvingProfile":
@@ -833,8 +834,9 @@ class EvolvingProfile:
         n = self.n_profiles if self.end == "wrap" else self.n_profiles - 1
         return n * self.seconds_per_profile
 
-    def at_many(self, t_s) -> np.ndarray:
-        """Densities at times ``t_s`` ``(F,)`` s -> ``(F, K)`` (vectorised)."""
+    def knots_at(self, t_s):
+        """Where times ``t_s`` ``(F,)`` s fall between knots: ``(i, j, w)``, each ``(F,)``:
+        the density is ``(1 - w) knot(i) + w knot(j)``."""
         t = np.asarray(t_s, dtype=float)
         if t.ndim != 1 or not np.all(np.isfinite(t)):
             raise ValueError("t_s must be a finite 1-D array of times (s)")
@@ -845,8 +847,29 @@ class EvolvingProfile:
         else:
             f = np.clip(f, 0.0, last)
         i = np.minimum(np.floor(f).astype(int), max(last - 1, 0))
-        w = (f - i)[:, None]
-        j = np.minimum(i + 1, last)
+        return i, np.minimum(i + 1, last), f - i
+
+    def knot(self, i: int) -> np.ndarray:
+        """Knot ``i``'s density ``(K,)`` (read-only; ``i`` as :meth:`knots_at` gives it)."""
+        return self._knots[int(i)]
+
+    def next_knot(self, j: int) -> int:
+        """The knot whose interval follows the one ending at knot ``j``."""
+        last = self._knots.shape[0] - 1
+        if j < last:
+            return int(j) + 1
+        return min(1, last) if self.end == "wrap" else last
+
+    def knot_column(self, i: int) -> float:
+        """Knot ``i``'s column ``integral density dh`` (trapezoid, density units x m): the
+        weight that turns a blend of unit-light spot models into the blended density's."""
+        k = self._knots[int(i)]
+        return float(np.sum(0.5 * (k[1:] + k[:-1]) * np.diff(self.altitude_m)))
+
+    def at_many(self, t_s) -> np.ndarray:
+        """Densities at times ``t_s`` ``(F,)`` s -> ``(F, K)`` (vectorised)."""
+        i, j, w = self.knots_at(t_s)
+        w = w[:, None]
         return (1.0 - w) * self._knots[i] + w * self._knots[j]
 
     def at(self, t_s: float) -> np.ndarray:
