@@ -139,10 +139,12 @@ def specs(transport: str, alg: str, source: str, sensor: Sensor, rate: float, ou
                                               "wait_for": ["/unused/slopes"],
                                               "start_delay_s": 3.0, **tp})
     else:
-        fields = {"single_subaperture": True, "detector": "polar"} if sensor.is_single else {}
+        # the live sensor: polar detector (the separable spots of the fast path), measured
+        # profiles evolving 1 s apart (blended between knots, the next built ahead)
+        fields = {"single_subaperture": True} if sensor.is_single else {}
         src = NodeSpec("simulator_node", "wfs", {
-            "frame_rate_hz": float(rate), "rate_hz": 0.0, "profile": "random",
-            "random_every": 10**9, "start_delay_s": 3.0, **fields, **tp})
+            "frame_rate_hz": float(rate), "rate_hz": 0.0, "profile": "evolving",
+            "detector": "polar", "start_delay_s": 3.0, **fields, **tp})
     return [rec, cen, src]
 
 
