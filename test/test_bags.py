@@ -667,6 +667,9 @@ def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, sig, delay):
         import numpy as np
         from lgs_wfs_ros.bags import BagWriter, encode_image
         signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))
+        # Python's own SIGINT handler even when started with SIGINT ignored (as a job put
+        # in the background by a non-interactive shell is: the test then timed out)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         w = BagWriter({str(p)!r}, chunk_size=30_000, compression="lz4")
         try:
             w.add_topic("/wfs/frame", "sensor_msgs/msg/Image")

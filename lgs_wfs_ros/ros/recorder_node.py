@@ -51,7 +51,10 @@ SPIN_PAUSE_S = 0.002
 RECORDER_DRAIN = 256
 # On SIGINT/SIGTERM the recorder keeps recording this long before closing the bag: a launch
 # file interrupts every node at once, and the producers' last messages (flushed by their own
-# shutdown, ros/spinning.py) are still on their way.
+# shutdown, ros/spinning.py) are still on their way. After it, it records on until nothing
+# has arrived for spinning.STOP_QUIET_S (3 s at most): what DDS already acknowledged to the
+# publishers but the recorder had not taken yet (a backlog on a loaded machine) reaches the
+# bag. Once, in a loaded full run, the soak lost the last 17 slopes that way.
 STOP_LINGER_S = 1.0
 
 
@@ -120,6 +123,7 @@ class RecorderNode(Node):
         self.gaps: dict[str, int] = {}          # topic -> messages lost before the recorder
         self._sequence: dict[str, int] = {}     # topic -> last publication sequence number
         self.frames_seen = 0
+        self.messages_taken = 0          # every message handed to _on_message (stop drain)
         self.failed = ""
         self.done = False        # the bag is closed
         self.closing = False     # no more writes
@@ -254,6 +258,7 @@ class RecorderNode(Node):
     def _on_message(self, topic, kind, cdr, info):
         if self.closing:
             return
+        self.messages_taken += 1
         self._count_gap(topic, info)
         if kind == "frame":
             if self.budget_reached:
@@ -384,7 +389,8 @@ def main(args=None):
     # BagError: e.g. the output exists and overwrite is false
     return run_node("recorder_node", RecorderNode, done=lambda n: n.done,
                     refused=(bags.BagError, ValueError), finish=_finish, args=args,
-                    pause_s=SPIN_PAUSE_S, stop_linger_s=STOP_LINGER_S)
+                    pause_s=SPIN_PAUSE_S, stop_linger_s=STOP_LINGER_S,
+                    activity=lambda n: n.messages_taken)
 
 
 if __name__ == "__main__":

@@ -31,8 +31,14 @@ def _on_signal(signum, _frame):
     STOP.set()
 
 
+# after a stop signal and its linger, a node with an activity count spins on until that
+# count has not moved for STOP_QUIET_S (its queues drained), STOP_DRAIN_MAX_S at most
+STOP_QUIET_S = 0.3
+STOP_DRAIN_MAX_S = 3.0
+
+
 def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0,
-               stop_linger_s: float = 0.0) -> None:
+               stop_linger_s: float = 0.0, activity=None) -> None:
     """Spin ``node`` until ``done()`` is true or the context shuts down.
 
     rclpy's signal handler shuts the context down on SIGINT and SIGTERM; a spin that was
@@ -45,13 +51,25 @@ def spin_until(node, done, timeout_sec: float = 0.1, pause_s: float = 0.0,
 
     ``stop_linger_s`` > 0 keeps spinning that long after a stop signal (the recorder: the
     last messages its publishers flush on their own SIGINT still reach the bag).
+    ``activity()`` (e.g. messages taken so far), when given, keeps it spinning past the
+    linger until the count is quiet for :data:`STOP_QUIET_S`: what the subscribers had
+    acknowledged but the node had not taken yet (a loaded machine) is not dropped.
     """
     stop_at = None
+    last = None
     while not done():
         if STOP.is_set():
-            stop_at = stop_at or time.monotonic() + stop_linger_s
-            if time.monotonic() >= stop_at:
-                return
+            now = time.monotonic()
+            if stop_at is None:
+                stop_at = now + stop_linger_s
+            if now >= stop_at:
+                count = activity() if activity is not None else None
+                if count is None or now >= stop_at + STOP_DRAIN_MAX_S:
+                    return
+                if last is None or count != last[0]:
+                    last = (count, now)
+                elif now - last[1] >= STOP_QUIET_S:
+                    return
         if pause_s > 0:
             time.sleep(pause_s)
         try:
@@ -120,7 +138,8 @@ def take_queued(sub, msg_type, limit: int):
 
 
 def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=None,
-             args=None, pause_s: float = 0.0, stop_linger_s: float = 0.0) -> int:
+             args=None, pause_s: float = 0.0, stop_linger_s: float = 0.0,
+             activity=None) -> int:
     """Run one node process; the exit code (0, or 2 when the start was refused).
 
     Args:
@@ -131,6 +150,8 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         finish: ``finish(node) -> int | None`` runs before the node is destroyed, also after a
             signal; a non-None result becomes the exit code.
         pause_s, stop_linger_s: see :func:`spin_until`.
+        activity: ``activity(node) -> int`` that grows with every message taken (see
+            :func:`spin_until`).
     """
     environment.configure()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -146,7 +167,8 @@ def run_node(name: str, factory, *, done=None, refused=(ValueError,), finish=Non
         # which wakes the wait set twice and rebuilds it per message (~0.3 ms per frame).
         rclpy.get_global_executor().add_node(node)
         spin_until(node, (lambda: done(node)) if done else (lambda: False), pause_s=pause_s,
-                   stop_linger_s=stop_linger_s)
+                   stop_linger_s=stop_linger_s,
+                   activity=(lambda: activity(node)) if activity else None)
     except refused as exc:
         rclpy.logging.get_logger(name).error(f"cannot start: {exc}")
         code = 2
