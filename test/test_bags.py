@@ -684,11 +684,16 @@ def test_sigint_at_random_moments_gives_a_complete_bag(tmp_path, sig, delay):
             w.close()
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
-    assert proc.stdout.readline().strip() == "ready"
-    import time
-    time.sleep(delay)
-    proc.send_signal(sig)
-    assert proc.wait(timeout=30) == 0
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        import time
+        time.sleep(delay)
+        proc.send_signal(sig)
+        assert proc.wait(timeout=30) == 0
+    finally:                     # a child that missed the signal writes on forever: end it
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
     assert _consistent(p) > 0
 
 
