@@ -138,12 +138,13 @@ def _chi2_pvalue(k, lam):
     return stats.chi2.sf(chi2, max(o.size - 1, 1))
 
 
-D = detector.DELTA
+D, M = detector.DELTA, detector.LAM_MAX
 BOUNDARY_MEANS = [
     0.5 * D, np.nextafter(D, 0), D, np.nextafter(D, 1), D + 0.5 * D,      # DELTA
     1.0, 3.0 - 1e-12, 3.0, 3.0 + 1e-12, 3.0 + 0.06, 3.0 + D - 1e-12,      # grid points
     7.3, np.nextafter(12.0, 0), 12.0, 12.0 + 1e-9, 12.06,                   # old INVERSION_MAX
-    40.06, np.nextafter(64.0, 0), 64.0, np.nextafter(64.0, 100), 64.06, 150.0,   # LAM_MAX
+    40.06, np.nextafter(64.0, 0), 64.0, 64.06,                              # old LAM_MAX
+    M - 0.06, np.nextafter(M, 0), M, np.nextafter(M, 2 * M), M + 0.06, 300.0,   # LAM_MAX
 ]
 
 
@@ -162,10 +163,10 @@ def test_table_sampler_is_poisson_at_every_branch_boundary(lam):
 
 @pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
 def test_table_sampler_on_a_shuffled_mixture_is_poisson_and_independent():
-    """Eight means from every branch interleaved at random (as along a frame's rows): each
+    """Nine means from every branch interleaved at random (as along a frame's rows): each
     mean's draws follow its Poisson law, and successive draws are uncorrelated (a branch that
     failed to carry the generator's state would repeat a uniform)."""
-    means = np.array([0.02, 0.3, 1.06, 5.5, 12.0, 33.3, 63.99, 90.0])
+    means = np.array([0.02, 0.3, 1.06, 5.5, 12.0, 33.3, 90.0, detector.LAM_MAX - 0.01, 200.0])
     rng = np.random.default_rng(3)
     idx = rng.integers(0, means.size, 1_200_000)
     lam = means[idx]
@@ -184,11 +185,11 @@ def test_poisson_tables_are_the_exact_cdf():
     ~1e-15) ending at 2^53; the guide is the first k above each bucket's lowest uniform; the
     32-bit copy is the top bits."""
     from scipy import stats
-    thr, hi, guide, start = detector.poisson_tables()
+    thr, hi, lo, guide, start = detector.poisson_tables()
     nb = 1 << detector.GUIDE_BITS
     ends = np.append(start[1:], thr.size)
     assert start[0] == 0 and np.all(np.diff(start) > 0)
-    for g in [0, 1, 2, 7, 8, 24, 95, 96, 97, 300, 511]:
+    for g in [g for g in (0, 1, 2, 7, 8, 24, 95, 96, 97, 300, 511, 512, 1023) if g < start.size]:
         row = thr[start[g]:ends[g]].astype(np.float64)
         c = g * detector.DELTA
         f = stats.poisson.cdf(np.arange(row.size), c)
@@ -201,6 +202,9 @@ def test_poisson_tables_are_the_exact_cdf():
         assert np.all(r[gd] > bucket)
         assert np.all((gd == 0) | (r[np.maximum(gd - 1, 0)] <= bucket))
     np.testing.assert_array_equal(hi, np.minimum(thr >> np.uint64(21), 2**32 - 1))
+    top = thr == 2**53                                        # lo 2^21: never reached
+    np.testing.assert_array_equal(lo[~top], thr[~top] & np.uint64(2**21 - 1))
+    assert np.all(lo[top] == 2**21)
 
 
 @pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")

@@ -55,7 +55,7 @@ def _photon_map(images, photons, per_field: bool) -> np.ndarray:
 
 INVERSION_MAX = 12.0      # the previous sampler's switch to PTRS (kept: tests draw around it)
 DELTA = 0.125             # table grid: Poisson(m) = Poisson(c) + Poisson(m - c), c = DELTA floor(m / DELTA)
-LAM_MAX = 64.0            # tabulated inversion below this mean, Hormann's PTRS above
+LAM_MAX = 128.0           # tabulated inversion below this mean, Hormann's PTRS above
 GUIDE_BITS = 7            # 128 guide entries per grid value (uint8): the search starts 0 short 95 %
 _NGRID = int(LAM_MAX / DELTA)
 _INV_DELTA = 1.0 / DELTA
@@ -83,10 +83,11 @@ def poisson_tables():
       ``w`` in ``[0, 2^53)`` draws the smallest ``k`` with ``w < thr[start[g] + k]``: exact
       inversion of the 53-bit uniform. Each row ends at the first ``k`` whose threshold
       is ``2^53`` (``1 - F_c(k) <= 2^-53``: no uniform goes past it).
-    * ``hi`` (uint32): ``thr >> 21`` (``2^32 - 1`` for ``2^53``), what the search reads:
-      ``w >= thr`` iff ``w >> 21 > hi``, or ``w >> 21 == hi`` and ``w >= thr`` (the
-      full threshold is read only on a tie of the top 32 bits, ~2^-32 of the comparisons);
-      half the cache footprint of ``thr``.
+    * ``hi``, ``lo`` (uint32): ``thr``'s top 32 bits (``2^32 - 1`` for ``2^53``) and its low
+      21 bits, what the search reads: ``w >= thr`` iff ``w >> 21 > hi``, or ``w >> 21 ==
+      hi`` and ``w & (2^21 - 1) >= lo`` (``lo`` is read only on a tie of the top bits,
+      ~2^-32 of the comparisons): half the cache footprint of ``thr``, and each array under
+      numba's 1 MB limit for constants that can be cached.
     * ``guide`` (uint8, ``(NGRID << GUIDE_BITS,)``): for the top ``GUIDE_BITS`` bits ``j``
       of ``w``, the smallest ``k`` with ``thr > j 2^(53 - GUIDE_BITS)``: where the search
       starts (no smaller ``k`` can be the answer).
@@ -118,6 +119,7 @@ def poisson_tables():
     thr = np.array(thr, dtype=np.uint64)
     start = np.array(start, dtype=np.int64)
     hi = np.minimum(thr >> np.uint64(21), np.uint64(2**32 - 1)).astype(np.uint32)
+    lo = np.where(thr == _ONE, np.uint64(1 << 21), thr & np.uint64((1 << 21) - 1)).astype(np.uint32)
     nb = 1 << GUIDE_BITS
     bucket = np.arange(nb, dtype=np.uint64) << np.uint64(53 - GUIDE_BITS)
     guide = np.empty(_NGRID * nb, dtype=np.uint8)
@@ -125,9 +127,9 @@ def poisson_tables():
     assert np.all(ends - start <= 256)
     for g in range(_NGRID):
         guide[g * nb:(g + 1) * nb] = np.searchsorted(thr[start[g]:ends[g]], bucket, side="right")
-    for a in (thr, hi, guide, start):
+    for a in (thr, hi, lo, guide, start):
         a.setflags(write=False)
-    return thr, hi, guide, start
+    return thr, hi, lo, guide, start
 
 
 def _bits(x):
@@ -198,7 +200,8 @@ def _draw(m, x):
         s = _START[g]
         i = s + np.int64(_GUIDE[(g << GUIDE_BITS) + np.int64(w >> np.uint64(53 - GUIDE_BITS))])
         wh = w >> np.uint64(21)
-        while wh > np.uint64(_HI[i]) or (wh == np.uint64(_HI[i]) and w >= _THR[i]):
+        while wh > np.uint64(_HI[i]) or (wh == np.uint64(_HI[i]) and
+                                         (w & np.uint64(0x1FFFFF)) >= np.uint64(_LO[i])):
             i += 1
         k = i - s
         m -= g * DELTA                               # exact: DELTA a power of 2, m < 2 g DELTA
@@ -229,7 +232,7 @@ if numba is not None:
     # Global arrays are frozen into the compiled code as constants: no reference counting
     # in the per-pixel loops (passing the tables as arguments to the inlined draw costs
     # ~12 ns a pixel in increfs/decrefs). Built at import (~40 ms) for the compiler.
-    _THR, _HI, _GUIDE, _START = poisson_tables()
+    _, _HI, _LO, _GUIDE, _START = poisson_tables()
     _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
     _seed_state = numba.njit(cache=True, nogil=True)(_seed_state)
     _bits = _jit_inline(_bits)
