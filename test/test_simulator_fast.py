@@ -163,10 +163,11 @@ def test_table_sampler_is_poisson_at_every_branch_boundary(lam):
 
 @pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
 def test_table_sampler_on_a_shuffled_mixture_is_poisson_and_independent():
-    """Nine means from every branch interleaved at random (as along a frame's rows): each
+    """Eleven means from every branch interleaved at random (as along a frame's rows): each
     mean's draws follow its Poisson law, and successive draws are uncorrelated (a branch that
     failed to carry the generator's state would repeat a uniform)."""
-    means = np.array([0.02, 0.3, 1.06, 5.5, 12.0, 33.3, 90.0, detector.LAM_MAX - 0.01, 200.0])
+    means = np.array([0.001, 0.02, 0.11, 0.3, 1.06, 5.5, 12.0, 33.3, 90.0,
+                      detector.LAM_MAX - 0.01, 200.0])
     rng = np.random.default_rng(3)
     idx = rng.integers(0, means.size, 1_200_000)
     lam = means[idx]

@@ -209,23 +209,43 @@ def _draw(m, x):
     return k + j, x
 
 
-def _poisson_run(lam, n, floor, x, out):
+def _poisson_run(lam, n, floor, x, d, out):
     """Compiled: ``out[i] ~ Poisson(lam[i])`` for ``i < n`` (0 where ``lam <= floor``) from
-    the xorshift64* state ``x``; returns the new state. One tight loop (the fused frame
-    kernels fill a block's buffer and call it: ~1.5 ns a pixel cheaper than drawing inside
-    their own loops, where the state and the draw's branches compete with the rendering)."""
+    the xorshift64* state ``x`` and the small-mean process's distance ``d`` to its next
+    event (``d < 0``: not started); returns the new ``(x, d)``: consecutive calls draw
+    exactly what one call over the concatenated means would. One tight loop (the fused frame
+    kernels batch their expected counts and call it: the draws inside the rendering loop
+    cost ~1 ms more a full frame).
+
+    Means below ``DELTA`` (most of a frame's drawn pixels) are the consecutive intervals of
+    one unit-rate Poisson process: ``d`` is the distance to its next event (exponential,
+    ``-log(1 - u)``), each such pixel takes ``d -= lam`` and counts the events that fall
+    in its interval. The counts of a Poisson process in disjoint intervals are independent
+    Poisson draws of the intervals' lengths: exact, with no uniform for a pixel that gets
+    no photon (one uniform and one log a photon instead). Larger means: :func:`_draw`."""
+    if d < 0.0:
+        u, x = _uniform(x)
+        d = -math.log(1.0 - u)
     for i in range(n):
         m = lam[i]
         v = np.int64(0)
-        if m > floor:
+        if m <= floor:
+            pass
+        elif m >= DELTA:
             v, x = _draw(m, x)
+        else:
+            d -= m
+            while d < 0.0:
+                v += 1
+                u, x = _uniform(x)
+                d -= math.log(1.0 - u)
         out[i] = v
-    return x
+    return x, d
 
 
 def _poisson_fill(lam, floor, seed, out):
     """Compiled: ``out[i] ~ Poisson(lam[i])`` (0 where ``lam <= floor``), see :func:`_draw`."""
-    _poisson_run(lam, lam.size, floor, _seed_state(seed), out)
+    _poisson_run(lam, lam.size, floor, _seed_state(seed), -1.0, out)
 
 
 if numba is not None:

@@ -125,14 +125,14 @@ def _batch_buffers(p):
             np.empty(n // p, dtype=np.int64))
 
 
-def _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x):
+def _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d):
     """Compiled: Poisson draws of the ``nl`` batched block rows ``lam`` written into
     ``frame[rpos[j], cpos[j]:cpos[j] + p]`` (clipped at 65535 for a uint16 frame); returns
-    ``(state, clipped)``. The draws run in one tight loop over the batch
+    ``(state, process distance, clipped)`` (:func:`detector._poisson_run`). The draws run in one tight loop over the batch
     (:func:`detector._poisson_run`) rather than inside the rendering loop: there the
     spot tables streamed through the cache evict the Poisson tables and the rendering's
     registers and branches compete with the draws (~1.5 ms a full frame)."""
-    x = detector._poisson_run(lam, nl * p, POISSON_FLOOR, x, cnt)
+    x, d = detector._poisson_run(lam, nl * p, POISSON_FLOOR, x, d, cnt)
     sat = 0
     for j in range(nl):
         row, c0 = rpos[j], cpos[j]
@@ -142,7 +142,7 @@ def _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x):
                 v = UINT16_MAX
                 sat += 1
             frame[row, c0 + c] = v
-    return x, sat
+    return x, d, sat
 
 
 def _zero_blocks(frame, rows, cols, p):
@@ -164,6 +164,7 @@ def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, z
     gmin = np.empty(p)
     lam, cnt, rpos, cpos = _batch_buffers(p)
     nl = 0
+    d = -1.0                                    # the small-mean process: not started
     sat = 0
     half = p / 2.0
     for i in range(rows.size):
@@ -197,7 +198,7 @@ def _render_polar(tab, der, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows, z
                     lam[nl * p + c] = ga * line[c]
                 nl += 1
             if (nl + p) * p > lam.size or i == rows.size - 1:
-                x, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x)
+                x, d, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d)
                 sat += s
                 nl = 0
             continue
@@ -219,6 +220,7 @@ def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, nois
     x = detector._seed_state(seed)
     lam, cnt, rpos, cpos = _batch_buffers(p)
     nl = 0
+    d = -1.0                                    # the small-mean process: not started
     sat = 0
     for i in range(rows.size):
         scale = photons
@@ -237,7 +239,7 @@ def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, nois
                     lam[nl * p + c] = scale * images[i, a, c]
                 nl += 1
             if (nl + p) * p > lam.size or i == rows.size - 1:
-                x, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x)
+                x, d, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d)
                 sat += s
                 nl = 0
             continue
