@@ -113,3 +113,140 @@ def test_fast_with_background_takes_the_general_path():
     s = Sensor(detector="polar", diameter_m=8.0, obstruction_m=1.0, n_subaps=6, background_e=2.0)
     sim = Simulator(s, SimulationConfig(profile="centred", seed=1), fast=True)
     assert sim._renderer is None and sim.next().frame.shape == s.frame_shape
+
+
+# --- the tabulated sampler (detector.poisson_tables, _draw): exact at every branch ------------
+
+def _chi2_pvalue(k, lam):
+    """Chi-square p-value of the draws ``k`` against the Poisson(lam) pmf (bins with an
+    expected count > 5; the tails beyond 1e-6 pooled into the end bins)."""
+    from scipy import stats
+    n = k.size
+    lo, hi = int(stats.poisson.ppf(1e-6, lam)), int(stats.poisson.ppf(1 - 1e-6, lam))
+    obs = np.bincount(np.clip(k, lo, hi) - lo, minlength=hi - lo + 1).astype(float)
+    cdf = stats.poisson.cdf(np.arange(lo, hi + 1), lam)
+    pmf = np.diff(np.concatenate([[0.0], cdf]))
+    pmf[-1] += stats.poisson.sf(hi, lam)                     # the pooled upper tail
+    exp = n * pmf
+    keep = exp > 5
+    rest = ~keep                                              # pool the thin bins together
+    o = np.append(obs[keep], obs[rest].sum())
+    e = np.append(exp[keep], exp[rest].sum())
+    if e[-1] < 5:
+        o, e = o[:-1], e[:-1]
+    chi2 = ((o - e) ** 2 / e).sum()
+    return stats.chi2.sf(chi2, max(o.size - 1, 1))
+
+
+D, M = detector.DELTA, detector.LAM_MAX
+BOUNDARY_MEANS = [
+    0.5 * D, np.nextafter(D, 0), D, np.nextafter(D, 1), D + 0.5 * D,      # DELTA
+    1.0, 3.0 - 1e-12, 3.0, 3.0 + 1e-12, 3.0 + 0.06, 3.0 + D - 1e-12,      # grid points
+    7.3, np.nextafter(12.0, 0), 12.0, 12.0 + 1e-9, 12.06,                   # old INVERSION_MAX
+    40.06, np.nextafter(64.0, 0), 64.0, 64.06,                              # old LAM_MAX
+    M - 0.06, np.nextafter(M, 0), M, np.nextafter(M, 2 * M), M + 0.06, 300.0,   # LAM_MAX
+]
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+@pytest.mark.parametrize("lam", BOUNDARY_MEANS)
+def test_table_sampler_is_poisson_at_every_branch_boundary(lam):
+    """300k draws at means just below / at / above each switch of the sampler (DELTA, grid
+    points, the old inversion limit 12, LAM_MAX) and mid-cell (a dropped residual biases the
+    mean by up to DELTA: > 15 sigma there): mean, variance and the histogram (chi-square)."""
+    n = 300_000
+    k = detector.poisson(np.full(n, lam), np.random.default_rng(11), fast=True)
+    assert abs(k.mean() - lam) < 4.5 * np.sqrt(lam / n)
+    assert abs(k.var() / lam - 1) < 4.5 * np.sqrt((2.0 + 1.0 / lam) / n)
+    assert _chi2_pvalue(k, lam) > 1e-5
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_table_sampler_on_a_shuffled_mixture_is_poisson_and_independent():
+    """Eleven means from every branch interleaved at random (as along a frame's rows): each
+    mean's draws follow its Poisson law, and successive draws are uncorrelated (a branch that
+    failed to carry the generator's state would repeat a uniform)."""
+    means = np.array([0.001, 0.02, 0.11, 0.3, 1.06, 5.5, 12.0, 33.3, 90.0,
+                      detector.LAM_MAX - 0.01, 200.0])
+    rng = np.random.default_rng(3)
+    idx = rng.integers(0, means.size, 1_200_000)
+    lam = means[idx]
+    k = detector.poisson(lam, rng, detector.POISSON_FLOOR, fast=True)
+    for j, m in enumerate(means):
+        kj = k[idx == j]
+        assert abs(kj.mean() - m) < 4.5 * np.sqrt(m / kj.size)
+        assert _chi2_pvalue(kj, m) > 1e-5
+    z = (k - lam) / np.sqrt(lam)
+    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 4.5 / np.sqrt(z.size)
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_poisson_tables_are_the_exact_cdf():
+    """Each row's thresholds are ceil(2^53 F_c(k)) for the Poisson CDF F_c (scipy, to its
+    ~1e-15) ending at 2^53; the guide is the first k above each bucket's lowest uniform; the
+    32-bit copy is the top bits."""
+    from scipy import stats
+    thr, hi, lo, guide, start = detector.poisson_tables()
+    nb = 1 << detector.GUIDE_BITS
+    ends = np.append(start[1:], thr.size)
+    assert start[0] == 0 and np.all(np.diff(start) > 0)
+    for g in [g for g in (0, 1, 2, 7, 8, 24, 95, 96, 97, 300, 511, 512, 1023) if g < start.size]:
+        row = thr[start[g]:ends[g]].astype(np.float64)
+        c = g * detector.DELTA
+        f = stats.poisson.cdf(np.arange(row.size), c)
+        assert row[-1] == 2.0**53 and np.all(np.diff(row) >= 0)
+        assert 1 - f[-1] <= 2.0**-53 and (row.size == 1 or 1 - f[-2] > 2.0**-53 / 2)
+        np.testing.assert_allclose(row[:-1] / 2.0**53, f[:-1], rtol=0, atol=2e-15)
+        r = thr[start[g]:ends[g]]
+        bucket = np.arange(nb, dtype=np.uint64) << np.uint64(53 - detector.GUIDE_BITS)
+        gd = guide[g * nb:(g + 1) * nb].astype(np.int64)
+        assert np.all(r[gd] > bucket)
+        assert np.all((gd == 0) | (r[np.maximum(gd - 1, 0)] <= bucket))
+    np.testing.assert_array_equal(hi, np.minimum(thr >> np.uint64(21), 2**32 - 1))
+    top = thr == 2**53                                        # lo 2^21: never reached
+    np.testing.assert_array_equal(lo[~top], thr[~top] & np.uint64(2**21 - 1))
+    assert np.all(lo[top] == 2**21)
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_fused_polar_draws_are_the_samplers_in_batches():
+    """Full pupil (many draw batches): the fused kernel's noisy float64 frame is exactly
+    the sampler run once over the lit rows' expected counts in block order (the batches
+    carry the generator's state: none restarts or skips a draw), and it is reproducible."""
+    s = Sensor(detector="polar", dtype="float32")
+    sim = Simulator(s, SimulationConfig(profile="uncentred", seed=4), fast=True)
+    r, p, seed = sim._renderer, s.pixels, 12345
+    r._check = lambda out: None                    # float64 frames: the exact expected counts
+    truth = sim.truth_at(0)
+    model = sim.spot_model(*sim.profile_at(0), truth)
+    expect = np.full(s.frame_shape, 7.0)
+    r.render(model, truth, expect, s.photons, 0, noise=False)
+    a = np.full(s.frame_shape, 3.0)
+    b = np.full(s.frame_shape, 5.0)
+    r.render(model, truth, a, s.photons, seed)
+    r.render(model, truth, b, s.photons, seed)
+    np.testing.assert_array_equal(a, b)
+    rows = []
+    for br, bc in zip(r.rows, r.cols):
+        blk = expect[br * p:(br + 1) * p, bc * p:(bc + 1) * p]
+        rows += [(br * p + j, bc * p) for j in range(p) if blk[j].max() > detector.POISSON_FLOOR]
+    lam = np.concatenate([expect[i, j:j + p] for i, j in rows])
+    assert lam.size > 3 * 8192                                # several batches
+    out = np.empty(lam.size, np.int64)
+    detector._poisson_fast(lam, detector.POISSON_FLOOR, seed, out)
+    ref = np.zeros(s.frame_shape)
+    for n, (i, j) in enumerate(rows):
+        ref[i, j:j + p] = out[n * p:(n + 1) * p]
+    np.testing.assert_array_equal(a, ref)
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+@pytest.mark.parametrize("detector_kind", ["polar", "cartesian"])
+def test_fast_frames_same_seed_same_frames(detector_kind):
+    s = Sensor(detector=detector_kind, diameter_m=8.0, obstruction_m=1.0, n_subaps=10)
+    cfg = SimulationConfig(profile="uncentred", seed=8)
+    out = np.empty(s.frame_shape, np.uint16)
+    a = [Simulator(s, cfg, fast=True).next(out=out).frame.copy() for _ in range(2)]
+    c = Simulator(s, cfg.replace(seed=9), fast=True).next(out=out).frame
+    np.testing.assert_array_equal(a[0], a[1])
+    assert a[0].sum() > 1000 and not np.array_equal(a[0], c)
