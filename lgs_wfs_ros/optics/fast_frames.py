@@ -152,6 +152,15 @@ def _zero_blocks(frame, rows, cols, p):
             frame[rows[b] * p + a, c0:c0 + p] = 0
 
 
+def _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d, last):
+    """Draws the batch when it could not take another block's rows, or after the last
+    block: ``(x, d, rows left in the batch, saturated)``."""
+    if (nl + p) * p > lam.size or last:
+        x, d, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d)
+        return x, d, 0, s
+    return x, d, nl, 0
+
+
 def _render_polar(tab, der, tab2, der2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows,
                   zcols, photons, per_field, noise, integer, seed, frame, trunc):
     """Compiled: every valid block of ``frame`` (rows local y, columns local x) from the
@@ -203,10 +212,9 @@ def _render_polar(tab, der, tab2, der2, wb, d0, s_maj, s_min, kp, kd, q, p, rows
                 for c in range(p):
                     lam[nl * p + c] = ga * line[c]
                 nl += 1
-            if (nl + p) * p > lam.size or i == rows.size - 1:
-                x, d, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d)
-                sat += s
-                nl = 0
+            x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
+                                        i == rows.size - 1)
+            sat += s
             continue
         for a in range(p):
             ga = scale * gmin[a]
@@ -244,10 +252,9 @@ def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, nois
                 for c in range(p):
                     lam[nl * p + c] = scale * images[i, a, c]
                 nl += 1
-            if (nl + p) * p > lam.size or i == rows.size - 1:
-                x, d, s = _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d)
-                sat += s
-                nl = 0
+            x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
+                                        i == rows.size - 1)
+            sat += s
             continue
         for a in range(p):
             for c in range(p):
@@ -311,6 +318,7 @@ if AVAILABLE:
     _write_pixel = numba.njit(cache=True, nogil=True, inline="always")(_write_pixel)
     _batch_buffers = _jit(_batch_buffers)
     _draw_batch = _jit(_draw_batch)
+    _draw_if_full = numba.njit(cache=True, nogil=True, inline="always")(_draw_if_full)
     _zero_blocks = _jit(_zero_blocks)
     _render_polar = _jit(_render_polar)
     _expose_blocks = _jit(_expose_blocks)
