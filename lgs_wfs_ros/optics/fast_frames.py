@@ -101,6 +101,37 @@ def _hermite_edges(tab, der, t0, n_edges, step, out):
             out[j] = h00 * tab[i] + h10 * der[i] + h01 * tab[i + 1] + h11 * der[i + 1]
 
 
+def _hermite_lines(lines, t0, n_edges, out):
+    """Cubic Hermite reads at flat indices ``t0 + j H`` of one subaperture's phase-major
+    line table ``lines (H, M, 2)``: flat index ``g = k H + phase`` at ``lines[phase, k]``
+    = (cumulative light, its derivative per px). The ``n_edges`` reads of a block share
+    their phase, so they walk two contiguous runs (value and derivative side by side)
+    instead of ``2 n_edges`` cache lines of a flat table."""
+    g = math.floor(t0)
+    f = t0 - g
+    m = lines.shape[1]
+    last = H * m - 2
+    f2 = f * f
+    f3 = f2 * f
+    h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, (f3 - 2 * f2 + f) / H, -2 * f3 + 3 * f2, (f3 - f2) / H
+    for j in range(n_edges):
+        i = g + j * H
+        if i < 0:
+            out[j] = lines[0, 0, 0]
+        elif i > last:
+            out[j] = lines[H - 1, m - 1, 0]
+        else:
+            p0 = i % H
+            k0 = i // H
+            p1 = p0 + 1
+            k1 = k0
+            if p1 == H:
+                p1 = 0
+                k1 = k0 + 1
+            out[j] = (h00 * lines[p0, k0, 0] + h10 * lines[p0, k0, 1]
+                      + h01 * lines[p1, k1, 0] + h11 * lines[p1, k1, 1])
+
+
 def _write_pixel(lam, integer, frame, row, col):
     """Expected count ``lam`` (no noise) written to ``frame[row, col]``, rounded for a
     uint16 frame; returns 1 if clipped at 65535."""
@@ -161,10 +192,10 @@ def _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d, last):
     return x, d, nl, 0
 
 
-def _render_polar(tab, der, tab2, der2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows,
+def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows,
                   zcols, photons, per_field, noise, integer, seed, frame, trunc):
     """Compiled: every valid block of ``frame`` (rows local y, columns local x) from the
-    line tables (``(1 - wb) tab + wb tab2``: two profiles' unit-light lines blended) and
+    line tables (``(1 - wb) lines + wb lines2``: two profiles' unit-light lines blended) and
     the core, Poisson-drawn (or expected counts if not ``noise``); the blocks ``(zrows,
     zcols)`` outside the pupil are zeroed. Returns saturated pixels."""
     x = detector._seed_state(seed)
@@ -179,9 +210,9 @@ def _render_polar(tab, der, tab2, der2, wb, d0, s_maj, s_min, kp, kd, q, p, rows
     sat = 0
     half = p / 2.0
     for i in range(rows.size):
-        _hermite_edges(tab[i], der[i], -H * half - d0 - H * s_maj[i], p + 1, H, cum)
+        _hermite_lines(lines[i], -H * half - d0 - H * s_maj[i], p + 1, cum)
         if wb > 0.0:
-            _hermite_edges(tab2[i], der2[i], -H * half - d0 - H * s_maj[i], p + 1, H, cum2)
+            _hermite_lines(lines2[i], -H * half - d0 - H * s_maj[i], p + 1, cum2)
             for j in range(p + 1):
                 cum[j] += wb * (cum2[j] - cum[j])
         _hermite_edges(kp, kd, q - H * half - H * s_min[i], p + 1, H, emin)
@@ -315,6 +346,7 @@ if AVAILABLE:
     _jit = numba.njit(cache=True, nogil=True)
     _line_tables = _jit(_line_tables)
     _hermite_edges = _jit(_hermite_edges)
+    _hermite_lines = _jit(_hermite_lines)
     _write_pixel = numba.njit(cache=True, nogil=True, inline="always")(_write_pixel)
     _batch_buffers = _jit(_batch_buffers)
     _draw_batch = _jit(_draw_batch)
@@ -330,8 +362,9 @@ class PolarTable:
     any shift up to ``model.max_shift_px`` per detector axis (``sqrt 2`` times that in the
     local frame, plus one pixel).
 
-    Attributes: ``tab``, ``der`` ``(n, N)`` cumulative light and its derivative per px on
-    ``y = y_lo + g / H``; ``d0 = H y_lo``.
+    Attributes: ``lines (n, H, M, 2)``: the cumulative light and its derivative per px on
+    ``y = y_lo + g / H`` at ``lines[i, g % H, g // H]`` (phase-major: a block's edges, one
+    pixel apart, share a phase); ``d0 = H y_lo``.
     """
 
     def __init__(self, model: SpotModel):
@@ -355,9 +388,17 @@ class PolarTable:
         self.d0 = -H * reach
         self.sigma_px = model.sigma_px
         kp, kd, q = core_kernels(self.sigma_px)
-        self.tab = np.empty((n, 2 * H * reach + 1))
-        self.der = np.empty_like(self.tab)
-        _line_tables(w, k0, r, self.d0, kp, kd, q, self.tab, self.der)
+        size = 2 * H * reach + 1
+        tab = np.empty((n, size))
+        der = np.empty_like(tab)
+        _line_tables(w, k0, r, self.d0, kp, kd, q, tab, der)
+        # phase-major, value and derivative side by side: lines[i, g % H, g // H] (padded
+        # past the end with the final light and a zero derivative)
+        m = -(-size // H)
+        flat = np.empty((n, m * H, 2))
+        flat[:, :size, 0], flat[:, :size, 1] = tab, der
+        flat[:, size:, 0], flat[:, size:, 1] = tab[:, -1:], 0.0
+        self.lines = np.ascontiguousarray(flat.reshape(n, m, H, 2).transpose(0, 2, 1, 3))
 
 
 class CartesianNodes:
@@ -451,7 +492,7 @@ class FastRenderer:
             loc = detector_to_local(np.asarray(truth, dtype=float), self.e)
             kp, kd, q = core_kernels(model.sigma_px)
             trunc = np.empty(self.rows.size)
-            sat = _render_polar(t.tab, t.der, t2.tab, t2.der, float(wb), t.d0,
+            sat = _render_polar(t.lines, t2.lines, float(wb), t.d0,
                                 np.ascontiguousarray(loc[:, 0]), np.ascontiguousarray(loc[:, 1]),
                                 kp, kd, q, p, self.rows, self.cols, self.zrows, self.zcols,
                                 float(photons), bool(per_field), bool(noise), bool(integer),
