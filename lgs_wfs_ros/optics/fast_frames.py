@@ -83,14 +83,20 @@ def _line_tables(w, k0, r, d0, kp, kd, q, tab, der):
             der[i, g] = d
 
 
-def _hermite_edges(tab, der, t0, n_edges, step, out):
-    """Cubic Hermite reads of ``tab`` (with ``der`` per px) at indices ``t0 + j step``."""
+def _hermite_weights(t0):
+    """``(g, h00, h10, h01, h11)``: the sample below ``t0`` and the cubic Hermite weights
+    of the values at ``g``, ``g + 1`` and their derivatives per px (samples ``1/H`` px apart)."""
     g = math.floor(t0)
     f = t0 - g
-    last = tab.size - 2
     f2 = f * f
     f3 = f2 * f
-    h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, (f3 - 2 * f2 + f) / H, -2 * f3 + 3 * f2, (f3 - f2) / H
+    return g, 2 * f3 - 3 * f2 + 1, (f3 - 2 * f2 + f) / H, -2 * f3 + 3 * f2, (f3 - f2) / H
+
+
+def _hermite_edges(tab, der, t0, n_edges, step, out):
+    """Cubic Hermite reads of ``tab`` (with ``der`` per px) at indices ``t0 + j step``."""
+    g, h00, h10, h01, h11 = _hermite_weights(t0)
+    last = tab.size - 2
     for j in range(n_edges):
         i = g + j * step
         if i < 0:
@@ -107,13 +113,9 @@ def _hermite_lines(lines, t0, n_edges, out):
     = (cumulative light, its derivative per px). The ``n_edges`` reads of a block share
     their phase, so they walk two contiguous runs (value and derivative side by side)
     instead of ``2 n_edges`` cache lines of a flat table."""
-    g = math.floor(t0)
-    f = t0 - g
+    g, h00, h10, h01, h11 = _hermite_weights(t0)
     m = lines.shape[1]
     last = H * m - 2
-    f2 = f * f
-    f3 = f2 * f
-    h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, (f3 - 2 * f2 + f) / H, -2 * f3 + 3 * f2, (f3 - f2) / H
     for j in range(n_edges):
         i = g + j * H
         if i < 0:
@@ -345,6 +347,7 @@ if AVAILABLE:
     numba = detector.numba              # the optional import lives in detector
     _jit = numba.njit(cache=True, nogil=True)
     _line_tables = _jit(_line_tables)
+    _hermite_weights = numba.njit(cache=True, nogil=True, inline="always")(_hermite_weights)
     _hermite_edges = _jit(_hermite_edges)
     _hermite_lines = _jit(_hermite_lines)
     _write_pixel = numba.njit(cache=True, nogil=True, inline="always")(_write_pixel)
