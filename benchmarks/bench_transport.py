@@ -54,6 +54,12 @@ def loadavg() -> str:
 
 
 # -- inputs ------------------------------------------------------------------------------------
+# The source starts this long after the nodes: with 3 s the centroider's slopes publisher
+# sometimes matched the recorder's subscription 0.4 s after the first frames (the first 334
+# slopes of a run published before the match, never recorded, counted as recorder losses).
+START_DELAY_S = 8.0
+
+
 def full_sensor(rate_hz: float) -> Sensor:
     return Sensor(frame_rate_hz=float(rate_hz))
 
@@ -137,14 +143,14 @@ def specs(transport: str, alg: str, source: str, sensor: Sensor, rate: float, ou
     if source == "player":
         src = NodeSpec("player_node", "wfs", {"bag": str(bag), "rate": str(rate), "loop": True,
                                               "wait_for": ["/unused/slopes"],
-                                              "start_delay_s": 3.0, **tp})
+                                              "start_delay_s": START_DELAY_S, **tp})
     else:
         # the live sensor: polar detector (the separable spots of the fast path), measured
         # profiles evolving 1 s apart (blended between knots, the next built ahead)
         fields = {"single_subaperture": True} if sensor.is_single else {}
         src = NodeSpec("simulator_node", "wfs", {
             "frame_rate_hz": float(rate), "rate_hz": 0.0, "profile": "evolving",
-            "detector": "polar", "start_delay_s": 3.0, **fields, **tp})
+            "detector": "polar", "start_delay_s": START_DELAY_S, **fields, **tp})
     return [rec, cen, src]
 
 
