@@ -185,6 +185,16 @@ def _zero_blocks(frame, rows, cols, p):
             frame[rows[b] * p + a, c0:c0 + p] = 0
 
 
+def _queue_row(lam, rpos, cpos, nl, p, row, col, scale, values):
+    """Queues one block row's expected counts ``scale * values (p,)``, at frame pixel
+    ``(row, col..col+p)``, for the batch draw; returns the batch's row count."""
+    rpos[nl] = row
+    cpos[nl] = col
+    for c in range(p):
+        lam[nl * p + c] = scale * values[c]
+    return nl + 1
+
+
 def _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d, last):
     """Draws the batch when it could not take another block's rows, or after the last
     block: ``(x, d, rows left in the batch, saturated)``."""
@@ -240,11 +250,7 @@ def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols,
                 if ga * lmax <= POISSON_FLOOR:  # a dark row is all 0: no draws
                     frame[r0 + a, c0:c0 + p] = 0
                     continue
-                rpos[nl] = r0 + a
-                cpos[nl] = c0
-                for c in range(p):
-                    lam[nl * p + c] = ga * line[c]
-                nl += 1
+                nl = _queue_row(lam, rpos, cpos, nl, p, r0 + a, c0, ga, line)
             x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
                                         i == rows.size - 1)
             sat += s
@@ -280,11 +286,7 @@ def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, nois
         r0, c0 = rows[i] * p, cols[i] * p
         if noise:                               # expected counts into the batch
             for a in range(p):
-                rpos[nl] = r0 + a
-                cpos[nl] = c0
-                for c in range(p):
-                    lam[nl * p + c] = scale * images[i, a, c]
-                nl += 1
+                nl = _queue_row(lam, rpos, cpos, nl, p, r0 + a, c0, scale, images[i, a])
             x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
                                         i == rows.size - 1)
             sat += s
@@ -354,6 +356,7 @@ if AVAILABLE:
     _batch_buffers = _jit(_batch_buffers)
     _draw_batch = _jit(_draw_batch)
     _draw_if_full = numba.njit(cache=True, nogil=True, inline="always")(_draw_if_full)
+    _queue_row = numba.njit(cache=True, nogil=True, inline="always")(_queue_row)
     _zero_blocks = _jit(_zero_blocks)
     _render_polar = _jit(_render_polar)
     _expose_blocks = _jit(_expose_blocks)
