@@ -53,7 +53,6 @@ def _photon_map(images, photons, per_field: bool) -> np.ndarray:
     return img * ph
 
 
-INVERSION_MAX = 12.0      # the previous sampler's switch to PTRS (kept: tests draw around it)
 DELTA = 0.125             # table grid: Poisson(m) = Poisson(c) + Poisson(m - c), c = DELTA floor(m / DELTA)
 LAM_MAX = 128.0           # tabulated inversion below this mean, Hormann's PTRS above
 GUIDE_BITS = 7            # 128 guide entries per grid value (uint8): the search starts 0 short 95 %

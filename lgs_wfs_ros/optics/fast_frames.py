@@ -161,10 +161,9 @@ def _batch_buffers(p):
 def _draw_batch(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d):
     """Compiled: Poisson draws of the ``nl`` batched block rows ``lam`` written into
     ``frame[rpos[j], cpos[j]:cpos[j] + p]`` (clipped at 65535 for a uint16 frame); returns
-    ``(state, process distance, clipped)`` (:func:`detector._poisson_run`). The draws run in one tight loop over the batch
-    (:func:`detector._poisson_run`) rather than inside the rendering loop: there the
-    spot tables streamed through the cache evict the Poisson tables and the rendering's
-    registers and branches compete with the draws (~1.5 ms a full frame)."""
+    ``(state, process distance, clipped)``. The draws run in one tight loop over the batch
+    (:func:`detector._poisson_run`) rather than inside the rendering loop, where they
+    measured ~1 ms a full frame slower (the cause was not isolated)."""
     x, d = detector._poisson_run(lam, nl * p, POISSON_FLOOR, x, d, cnt)
     sat = 0
     for j in range(nl):

@@ -144,6 +144,16 @@ class Frame:
     saturated: int = 0
 
 
+def _largest_shift(truth) -> float:
+    """The largest ``|shift|`` per axis of ``(n, 2)`` true displacements (px)."""
+    return float(np.abs(truth).max()) if truth.size else 0.0
+
+
+def _shift_margin(need: float) -> float:
+    """A spot model's ``max_shift_px`` for shifts up to ``need`` px: >= 3 px, 1 px spare."""
+    return max(3.0, math.ceil(need) + 1.0)
+
+
 class Simulator:
     """Frames and truths for a sensor and a :class:`SimulationConfig`.
 
@@ -267,9 +277,9 @@ class Simulator:
     def spot_model(self, density, key, truth) -> SpotModel:
         """The profile's :class:`SpotModel` (rebuilt when the profile changes or a shift
         exceeds its margin)."""
-        need = float(np.abs(truth).max()) if truth.size else 0.0
+        need = _largest_shift(truth)
         if self._spots is None or key != self._spots_key or need > self._spots.max_shift_px:
-            margin = max(3.0, math.ceil(need) + 1.0)
+            margin = _shift_margin(need)
             lay = self.layout
             self._spots = SpotModel(self.sensor, lay.r_m, lay.e, self.altitude_m, density, margin)
             self._spots_key = key
@@ -278,9 +288,9 @@ class Simulator:
     def _knot_margin(self, truth) -> float:
         """Shift margin of the fast path's knot models (px): grows, never shrinks, so the
         two blended knots always share it."""
-        need = float(np.abs(truth).max()) if truth.size else 0.0
+        need = _largest_shift(truth)
         if need > self._margin:
-            self._margin = max(3.0, math.ceil(need) + 1.0)
+            self._margin = _shift_margin(need)
         return self._margin
 
     def _build_knot(self, density, margin) -> SpotModel:

@@ -817,6 +817,10 @@ class EvolvingProfile:
         # knots extended by the first profile for wrapping
         self._knots = np.concatenate([self.profiles, self.profiles[:1]]) if end == "wrap" else self.profiles
         self._knots.setflags(write=False)
+        # each knot's column (trapezoid, density x m): constant, read every blended frame
+        self._columns = np.sum(0.5 * (self._knots[:, 1:] + self._knots[:, :-1])
+                               * np.diff(self.altitude_m), axis=1)
+        self._columns.setflags(write=False)
 
     @classmethod
     def measured(cls, seconds_per_profile: float = 1.0, end: str = "clamp", path=None) -> "EvolvingProfile":
@@ -863,8 +867,7 @@ class EvolvingProfile:
     def knot_column(self, i: int) -> float:
         """Knot ``i``'s column ``integral density dh`` (trapezoid, density units x m): the
         weight that turns a blend of unit-light spot models into the blended density's."""
-        k = self._knots[int(i)]
-        return float(np.sum(0.5 * (k[1:] + k[:-1]) * np.diff(self.altitude_m)))
+        return float(self._columns[int(i)])
 
     def at_many(self, t_s) -> np.ndarray:
         """Densities at times ``t_s`` ``(F,)`` s -> ``(F, K)`` (vectorised)."""
