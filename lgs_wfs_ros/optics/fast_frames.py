@@ -27,6 +27,7 @@ Used by ``Simulator(..., fast=True)`` when the sensor has no read noise and no b
 from __future__ import annotations
 
 import math
+import threading
 from functools import lru_cache
 
 import numpy as np
@@ -451,6 +452,7 @@ class FastRenderer:
         self.rows, self.cols = rows.astype(np.int64), cols.astype(np.int64)
         self.zrows, self.zcols = zr.astype(np.int64), zc.astype(np.int64)
         self._tables = {}                               # id(model) -> (model, table)
+        self._tables_lock = threading.Lock()
         self._images = None
 
     def _check(self, out):
@@ -464,9 +466,10 @@ class FastRenderer:
         if hit is not None and hit[0] is model:
             return hit[1]
         table = PolarTable(model) if model.polar else CartesianNodes(model)
-        self._tables[id(model)] = (model, table)
-        while len(self._tables) > self.KEEP:
-            self._tables.pop(next(iter(self._tables)))
+        with self._tables_lock:                  # a prefetch thread may insert at once
+            self._tables[id(model)] = (model, table)
+            while len(self._tables) > self.KEEP:
+                self._tables.pop(next(iter(self._tables)))
         return table
 
     def render(self, model: SpotModel, truth, out, photons, seed, noise=True, per_field=True,
