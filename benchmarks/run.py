@@ -4,7 +4,10 @@
     python benchmarks/run.py --fold OUT.json    # fold bench_transport.py --json rows in
 
 Each ``benchmarks/bench_<area>.py`` exposes ``run(quick=False) -> list[dict]`` with rows
-``{"name", "value", "unit", "target", "note"}``. Everything runs on one thread (numpy's BLAS,
+``{"name", "value", "unit", "target", "note"}``. A ``bench_*.py`` without ``run`` is a
+standalone script with outputs of its own (``bench_ann_ref.py``: the reference-reading
+network on the accuracy benchmark's cases, hours of CPU, ``accuracy_ann_ref.json``): listed,
+not run. Everything runs on one thread (numpy's BLAS,
 onnxruntime's intra-op pool): the targets are per core.
 """
 
@@ -68,7 +71,11 @@ def main(argv=None) -> int:
         print(f"== {area}", flush=True)
         t0 = time.perf_counter()
         try:
-            rows = load(path).run(quick=args.quick)
+            module = load(path)
+            if not hasattr(module, "run"):
+                print(f"  standalone (no run()): python benchmarks/{path.name}", flush=True)
+                continue
+            rows = module.run(quick=args.quick)
         except Exception:
             traceback.print_exc()
             failed += 1
