@@ -58,11 +58,12 @@ ESTIMATORS = {
     "cog": ("cog", {}),
     "cog_pupil": ("cog", {"bias": "pupil"}),
     "cmf": ("cmf", {}),
+    "ml": ("ml", {}),                                # polar only (refused on cartesian)
     "corr": ("corr", {}),
     "cmf_history": ("cmf", {"reference": "history"}),
     "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
 }
-QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ann_pupil")
+QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "ann_pupil")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 

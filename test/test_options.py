@@ -15,7 +15,7 @@ def test_table_covers_every_algorithm_and_only_real_options():
         assert set(names) <= set(_CLASSES[name]._allowed), (name, set(names) - set(_CLASSES[name]._allowed))
 
 
-@pytest.mark.parametrize("algorithm", ["cog", "tcog", "wcog", "cmf", "corr"])
+@pytest.mark.parametrize("algorithm", ["cog", "tcog", "wcog", "cmf", "corr", "ml"])
 def test_defaults_build_and_match_the_class(algorithm):
     sensor = Sensor.paper_single("polar")
     built = options.build(algorithm, sensor)

@@ -13,9 +13,11 @@ from .base import Centroider
 from .cmf import CMF
 from .cog import CoG, TCoG, WCoG
 from .correlation import Correlation
+from .ml import ML
 from .crb import crb, crb_covariance, crb_of, fisher, model_derivatives
 
-_CLASSES = {"cog": CoG, "tcog": TCoG, "wcog": WCoG, "cmf": CMF, "corr": Correlation, "ann": ANN}
+_CLASSES = {"cog": CoG, "tcog": TCoG, "wcog": WCoG, "cmf": CMF, "corr": Correlation, "ann": ANN,
+            "ml": ML}
 ALGORITHMS = tuple(_CLASSES)
 
 
@@ -40,5 +42,5 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
 
 
 __all__ = ["ALGORITHMS", "make_centroider", "Centroider", "CoG", "TCoG", "WCoG", "CMF",
-           "Correlation", "ANN", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
+           "Correlation", "ANN", "ML", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
            "model_derivatives"]

@@ -11,6 +11,8 @@ in registers. Outside the pupil nothing is read.
   ``[R; 1]`` of ``(n, k, p*p)``), float32 weights times pixels summed in float64.
 - :func:`filter_flux`: as :func:`block_contract` for the CMF's ``R`` ``(n, 2, p*p)`` plus
   each block's pixel sum (the flux), 2/3 of the weight traffic of ``[R; 1]``.
+- :func:`ml_search`: the ML estimator's marginals, calibrated-CoG start and hill climb on
+  its likelihood tables (:mod:`.ml`), one pass over each block.
 - :func:`invert_response`: the linearisation's per-subaperture inversion of a 2-D
   Chebyshev response (:mod:`.linearize`): polynomial start and Newton steps, one pass per
   subaperture in registers (numpy needs a dozen ``(n, 2, D, D)`` passes and ~50 calls).
@@ -246,7 +248,86 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
+def _ml_line_impl(mg, lg, k, tot_norm):
+    # log-likelihood of one axis' marginals mg (p,) against tabulated shift k of lg (K, p)
+    acc = 0.0
+    for u in range(mg.shape[0]):
+        acc += np.float64(mg[u]) * np.float64(lg[k, u])
+    return acc - tot_norm
+
+
+def _ml_search_impl(frame, origins, p, logs, norms, bias, step, out):
+    # logs (n, 2, K, p) float32, norms (n, 2, K), bias (n, 2): the calibrated CoG's offset
+    n = origins.shape[0]
+    kk = logs.shape[2]
+    m = (kk - 1) // 2
+    c = (p - 1) / 2.0
+    col = np.zeros(p, dtype=np.int64)
+    marg = np.empty((2, p), dtype=np.float32)
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        for j in range(p):
+            col[j] = 0
+        tot = 0.0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            rs = 0
+            for j in range(p):
+                v = np.int64(row[j])
+                rs += v
+                col[j] += v
+            marg[1, i] = rs
+            tot += rs
+        for j in range(p):
+            marg[0, j] = col[j]
+        if not tot > 0:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
+            continue
+        for a in range(2):
+            mg = marg[a]
+            lg = logs[b, a]
+            nm = norms[b, a]
+            mom = 0.0
+            for u in range(p):
+                mom += (u - c) * mg[u]
+            start = mom / tot - bias[b, a]
+            k = int(np.floor(start / step + 0.5)) + m
+            k = min(max(k, 1), kk - 2)
+            lm = 0.0
+            lk = 0.0
+            lp = 0.0
+            for u in range(p):                     # the three around the start, one pass
+                w = np.float64(mg[u])
+                lm += w * np.float64(lg[k - 1, u])
+                lk += w * np.float64(lg[k, u])
+                lp += w * np.float64(lg[k + 1, u])
+            lm -= tot * nm[k - 1]
+            lk -= tot * nm[k]
+            lp -= tot * nm[k + 1]
+            while lm > lk and k > 1:
+                k -= 1
+                lp = lk
+                lk = lm
+                lm = _ml_line(mg, lg, k - 1, tot * nm[k - 1])
+            while lp > lk and k < kk - 2:
+                k += 1
+                lm = lk
+                lk = lp
+                lp = _ml_line(mg, lg, k + 1, tot * nm[k + 1])
+            if lm > lk or lp > lk:                 # the climb hit the table's edge
+                out[b, a] = start
+                continue
+            den = lm - 2.0 * lk + lp
+            off = 0.5 * (lm - lp) / den if den < 0 else 0.0
+            out[b, a] = (k - m + min(max(off, -0.5), 0.5)) * step
+
+
 if AVAILABLE:
+    # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
+    _ml_line = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
+    _ml_search = numba.njit(cache=True, nogil=True)(_ml_search_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
@@ -322,6 +403,20 @@ def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m
     return s, jac
 
 
+def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
+              norms: np.ndarray, bias: np.ndarray, step: float) -> np.ndarray:
+    """``(n, 2)`` maximum-likelihood shifts, px, block axes, of each valid block of an
+    integer frame (see :func:`fits`) against the tables of :func:`.ml.likelihood_tables`
+    (``logs (n, 2, K, p)`` float32, ``norms (n, 2, K)``, grid ``step`` px); the climb starts
+    at the block's CoG minus ``bias (n, 2)``, which is returned where it leaves the grid.
+    NaN for a block without light."""
+    out = np.empty((origins.shape[0], 2))
+    _ml_search(frame, origins, int(p), np.ascontiguousarray(logs, dtype=np.float32),
+               np.ascontiguousarray(norms, dtype=np.float64),
+               np.ascontiguousarray(bias, dtype=np.float64), float(step), out)
+    return out
+
+
 _warm = False
 
 
@@ -337,4 +432,6 @@ def warm_up() -> None:
     block_contract(frame, o, np.zeros((1, 3, 16), np.float32))
     filter_flux(frame, o, np.zeros((1, 2, 16), np.float32))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
+    ml_search(frame, o, 4, np.zeros((1, 2, 3, 4), np.float32), np.zeros((1, 2, 3)),
+              np.zeros((1, 2)), 0.5)
     _warm = True
