@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lgs_wfs_ros.centroiding import crb_of, kernels, options as table
-from lgs_wfs_ros.centroiding.ml import FLOOR, likelihood_tables
+from lgs_wfs_ros.centroiding.ml import FLOOR, Tables
 from lgs_wfs_ros.optics import geometry, sodium
 from lgs_wfs_ros.optics.model_spot import ProfileSpots
 from lgs_wfs_ros.optics.spots import SpotModel
@@ -46,18 +46,28 @@ def test_noise_free_spots_are_found_where_they_are_on_both_paths():
 
 
 def test_tables_hold_the_shifted_marginals():
-    """Row k of the tables is the log of the block marginals of the spot shifted by
-    (k - M) step, light lost at the field edge included in the norms."""
+    """Shift k of the phase tables is the log of the block marginals of the spot shifted by
+    (k - M) step (whole pixels and phases put together right), the light the field keeps
+    in the norms."""
     sensor = small()
     ml = table.build("ml", sensor)
-    spots = spots_of(ml)
-    logs, norms = likelihood_tables(spots, sensor.pixels, 0.5, 1.0)
-    assert logs.shape == (ml.n, 2, 5, sensor.pixels) and norms.shape == (ml.n, 2, 5)
-    img = spots.image_at(np.tile([[0.5, 0.0]], (ml.n, 1)))
-    marg = img.sum(axis=1)
-    keep = marg > 1e-3 * marg.max(axis=1, keepdims=True)
-    np.testing.assert_allclose(logs[:, 0, 3][keep], np.log(marg[keep]), rtol=1e-5)
-    np.testing.assert_allclose(norms[:, 0, 3], np.log(marg.sum(axis=1)), atol=sensor.pixels * FLOOR)
+
+    def spots_of(s):
+        return ProfileSpots(s, ml.layout.r_m, ml.layout.e, ml.pupil.nodes_m, ml.pupil.light, 1.5)
+    t = Tables(spots_of, sensor, 0.25, 1.5)
+    assert t.logs.shape == (ml.n, 2, 4, sensor.pixels + 2 * 3) and t.norms.shape == (ml.n, 2, 13)
+    rows = t.rows(0)
+    for k, d in ((12, 1.5), (9, 0.75), (1, -1.25), (6, 0.0)):
+        img = spots_of_small(ml, sensor).image_at(np.tile([[d, 0.0]], (ml.n, 1)))
+        marg = img.sum(axis=1)
+        keep = marg > 1e-3 * marg.max(axis=1, keepdims=True)
+        np.testing.assert_allclose(rows[:, k][keep], np.log(marg[keep]), atol=1e-5)
+        np.testing.assert_allclose(t.norms[:, 0, k], np.log(marg.sum(axis=1)),
+                                   atol=sensor.pixels * FLOOR)
+
+
+def spots_of_small(ml, sensor):
+    return ProfileSpots(sensor, ml.layout.r_m, ml.layout.e, ml.pupil.nodes_m, ml.pupil.light, 2.0)
 
 
 def test_a_shift_beyond_the_tables_returns_the_calibrated_cog():

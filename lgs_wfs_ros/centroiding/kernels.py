@@ -248,18 +248,25 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
-def _ml_line_impl(mg, lg, k, tot_norm):
-    # log-likelihood of one axis' marginals mg (p,) against tabulated shift k of lg (K, p)
+def _ml_line_impl(mg, lg, k, m, phases, margin, tot_norm):
+    # log-likelihood of one axis' marginals mg (p,) against shift k of the phase table
+    # lg (S, W): phase j = (k - m) mod S, whole pixels i = (k - m - j) / S, from column margin - i
+    d = k - m + phases * (m + 1)                    # >= 0: plain division below
+    j = d % phases
+    base = margin - (d // phases - (m + 1))
     acc = 0.0
     for u in range(mg.shape[0]):
-        acc += np.float64(mg[u]) * np.float64(lg[k, u])
+        acc += np.float64(mg[u]) * np.float64(lg[j, base + u])
     return acc - tot_norm
 
 
-def _ml_search_impl(frame, origins, p, logs, norms, bias, step, out):
-    # logs (n, 2, K, p) float32, norms (n, 2, K), bias (n, 2): the calibrated CoG's offset
+def _ml_search_impl(frame, origins, p, logs, norms, bias, margin, out):
+    # logs (n, 2, S, W) float32 phase tables, norms (n, 2, K), bias (n, 2): the calibrated
+    # CoG's offset; grid step 1 / S
     n = origins.shape[0]
-    kk = logs.shape[2]
+    phases = logs.shape[2]
+    step = 1.0 / phases
+    kk = norms.shape[2]
     m = (kk - 1) // 2
     c = (p - 1) / 2.0
     col = np.zeros(p, dtype=np.int64)
@@ -295,27 +302,19 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, step, out):
             start = mom / tot - bias[b, a]
             k = int(np.floor(start / step + 0.5)) + m
             k = min(max(k, 1), kk - 2)
-            lm = 0.0
-            lk = 0.0
-            lp = 0.0
-            for u in range(p):                     # the three around the start, one pass
-                w = np.float64(mg[u])
-                lm += w * np.float64(lg[k - 1, u])
-                lk += w * np.float64(lg[k, u])
-                lp += w * np.float64(lg[k + 1, u])
-            lm -= tot * nm[k - 1]
-            lk -= tot * nm[k]
-            lp -= tot * nm[k + 1]
+            lm = _ml_line(mg, lg, k - 1, m, phases, margin, tot * nm[k - 1])
+            lk = _ml_line(mg, lg, k, m, phases, margin, tot * nm[k])
+            lp = _ml_line(mg, lg, k + 1, m, phases, margin, tot * nm[k + 1])
             while lm > lk and k > 1:
                 k -= 1
                 lp = lk
                 lk = lm
-                lm = _ml_line(mg, lg, k - 1, tot * nm[k - 1])
+                lm = _ml_line(mg, lg, k - 1, m, phases, margin, tot * nm[k - 1])
             while lp > lk and k < kk - 2:
                 k += 1
                 lm = lk
                 lk = lp
-                lp = _ml_line(mg, lg, k + 1, tot * nm[k + 1])
+                lp = _ml_line(mg, lg, k + 1, m, phases, margin, tot * nm[k + 1])
             if lm > lk or lp > lk:                 # the climb hit the table's edge
                 out[b, a] = start
                 continue
@@ -404,16 +403,16 @@ def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m
 
 
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
-              norms: np.ndarray, bias: np.ndarray, step: float) -> np.ndarray:
+              norms: np.ndarray, bias: np.ndarray, margin: int) -> np.ndarray:
     """``(n, 2)`` maximum-likelihood shifts, px, block axes, of each valid block of an
-    integer frame (see :func:`fits`) against the tables of :func:`.ml.likelihood_tables`
-    (``logs (n, 2, K, p)`` float32, ``norms (n, 2, K)``, grid ``step`` px); the climb starts
-    at the block's CoG minus ``bias (n, 2)``, which is returned where it leaves the grid.
-    NaN for a block without light."""
+    integer frame (see :func:`fits`) against the phase tables of :class:`.ml.Tables`
+    (``logs (n, 2, S, p + 2 margin)`` float32, ``norms (n, 2, K)``; grid step ``1 / S``
+    px); the climb starts at the block's CoG minus ``bias (n, 2)``, which is returned where
+    it leaves the grid. NaN for a block without light."""
     out = np.empty((origins.shape[0], 2))
     _ml_search(frame, origins, int(p), np.ascontiguousarray(logs, dtype=np.float32),
                np.ascontiguousarray(norms, dtype=np.float64),
-               np.ascontiguousarray(bias, dtype=np.float64), float(step), out)
+               np.ascontiguousarray(bias, dtype=np.float64), int(margin), out)
     return out
 
 
@@ -432,6 +431,6 @@ def warm_up() -> None:
     block_contract(frame, o, np.zeros((1, 3, 16), np.float32))
     filter_flux(frame, o, np.zeros((1, 2, 16), np.float32))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
-    ml_search(frame, o, 4, np.zeros((1, 2, 3, 4), np.float32), np.zeros((1, 2, 3)),
-              np.zeros((1, 2)), 0.5)
+    ml_search(frame, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
+              np.zeros((1, 2)), 2)
     _warm = True

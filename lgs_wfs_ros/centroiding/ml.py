@@ -45,22 +45,49 @@ from ..optics.model_spot import ProfileSpots
 FLOOR = 1e-4
 
 
-def likelihood_tables(spots: ProfileSpots, p: int, step: float,
-                      extent: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(logs (n, 2, K, p) float32, norms (n, 2, K) float64)``: ``log a(u - d_k)`` (axis 0)
-    and ``log b(v - d_k)`` (axis 1) of each subaperture's spot displaced by
-    ``d_k = (k - M) step`` px, ``M = round(extent / step)``, and the log of their sums over
-    the block (light the field keeps). Block axes, unit light; floored at :data:`FLOOR`."""
-    m = int(round(extent / step))
-    n = spots.n
-    marg = np.empty((n, 2, 2 * m + 1, p))
-    for k in range(2 * m + 1):
-        img = spots.image_at(np.full((n, 2), (k - m) * step))        # (n, p, p) [v, u]
-        marg[:, 0, k] = img.sum(axis=1)
-        marg[:, 1, k] = img.sum(axis=2)
-    floor = FLOOR * marg.max(axis=(2, 3), keepdims=True)
-    marg = np.maximum(marg, np.where(floor > 0, floor, 1e-300))
-    return np.log(marg).astype(np.float32), np.log(marg.sum(axis=3))
+class Tables:
+    """Likelihood tables of one profile for every subaperture, both block axes.
+
+    A shift ``d = i + j step`` (``i`` whole pixels, ``j`` of ``S = 1 / step`` phases) moves
+    the marginals by ``i`` pixels, so only the ``S`` phases are rendered, on a field
+    ``margin`` pixels wider on each side: ``logs[:, a, j, w]`` is ``log a(w - margin - j step)``
+    (axis 0; ``b`` for axis 1) for ``w`` in ``0 .. p + 2 margin - 1``, and the marginals of a
+    spot displaced by ``d_k = (k - M) step`` are the ``p`` entries from ``margin - i``.
+    ``norms[:, a, k]`` is the log of their sum (the light the field keeps). Shapes:
+    ``logs (n, 2, S, p + 2 margin)`` float32 (4 MB for the full pupil, 3x less than one row
+    per shift: the frame's pixels and the calibration's accumulator share the cache with
+    it), ``norms (n, 2, K)``, ``K = 2 M + 1``, ``M = extent / step``.
+    """
+
+    def __init__(self, spots_of, sensor, step: float, extent: float):
+        phases = int(round(1.0 / step))
+        self.phases, self.step = phases, 1.0 / phases
+        self.m = int(round(extent * phases))
+        self.margin = int(np.ceil(extent)) + 1
+        p = sensor.pixels
+        wide = p + 2 * self.margin
+        spots = spots_of(sensor.replace(pixels=wide))
+        marg = np.empty((spots.n, 2, phases, wide))
+        for j in range(phases):
+            img = spots.image_at(np.full((spots.n, 2), j * self.step))   # (n, w, w) [v, u]
+            marg[:, 0, j] = img.sum(axis=1)
+            marg[:, 1, j] = img.sum(axis=2)
+        floor = FLOOR * marg.max(axis=(2, 3), keepdims=True)
+        marg = np.maximum(marg, np.where(floor > 0, floor, 1e-300))
+        self.logs = np.log(marg).astype(np.float32)
+        k = np.arange(2 * self.m + 1) - self.m
+        whole, phase = np.divmod(k, phases)
+        cols = self.margin - whole[:, None] + np.arange(p)[None, :]           # (K, p)
+        self.norms = np.log(marg[:, :, phase[:, None], cols].sum(axis=-1))     # (n, 2, K)
+
+    def rows(self, axis: int) -> np.ndarray:
+        """``(n, K, p)`` float64 log marginals of every tabulated shift along ``axis``
+        (the numpy path's full table)."""
+        k = np.arange(2 * self.m + 1) - self.m
+        whole, phase = np.divmod(k, self.phases)
+        p = self.logs.shape[-1] - 2 * self.margin
+        cols = self.margin - whole[:, None] + np.arange(p)[None, :]
+        return self.logs[:, axis][:, phase[:, None], cols].astype(np.float64)
 
 
 class ML(CoG):
@@ -87,6 +114,8 @@ class ML(CoG):
                              "block axes); on a cartesian detector use cmf, or cog with "
                              "bias=pupil")
         step = number("step_px", options.pop("step_px", 0.125), minimum=0, strict=True)
+        if abs(1.0 / step - round(1.0 / step)) > 1e-9:
+            raise ValueError(f"ml: step_px must be 1 / an integer (0.25, 0.125, ...), got {step}")
         extent = number("extent_px", options.pop("extent_px", 2.0), minimum=0, strict=True)
         if not step <= extent <= 0.5 * sensor.pixels:
             raise ValueError(f"ml: need step_px <= extent_px <= {0.5 * sensor.pixels} px, got "
@@ -107,15 +136,16 @@ class ML(CoG):
     # -- tables --------------------------------------------------------------------------
     def _prepare(self, calibration) -> dict:
         """What a (background) refit builds: the likelihood tables of its profile."""
-        spots = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, calibration.nodes_m,
-                             calibration.light, self.extent + 1.0)
-        logs, norms = likelihood_tables(spots, self.p, self.step, self.extent)
-        return {"version": calibration.version, "logs": logs, "norms": norms,
-                "bias": calibration.cog_bias()}
+        def spots_of(sensor):
+            return ProfileSpots(sensor, self.layout.r_m, self.layout.e, calibration.nodes_m,
+                                calibration.light, 1.5)
+        return {"version": calibration.version, "bias": calibration.cog_bias(),
+                "tables": Tables(spots_of, self.sensor, self.step, self.extent)}
 
     def _install(self, payload: dict) -> None:
         self._version = payload["version"]
-        self._logs, self._norms, self._bias = payload["logs"], payload["norms"], payload["bias"]
+        self._tables, self._bias = payload["tables"], payload["bias"]
+        self._rows = None                           # the numpy path's, made when needed
 
     def _refresh(self) -> None:
         """Tables of the calibration's current profile (a background refit's, or built now)."""
@@ -132,8 +162,9 @@ class ML(CoG):
         if kernels.fits(data, self.sensor.frame_shape):
             self.pupil.observe_frame(data)
             self._refresh()
-            out = kernels.ml_search(data, kernels.origins(self), self.p, self._logs,
-                                    self._norms, self._bias, self.step)
+            t = self._tables
+            out = kernels.ml_search(data, kernels.origins(self), self.p, t.logs, t.norms,
+                                    self._bias, t.margin)
             return self.finish(out, np.isfinite(out).all(axis=1))
         flat = self.float_stack(data).reshape(self.n, -1)
         tot = flat.sum(axis=1, dtype=np.float64)
@@ -149,8 +180,10 @@ class ML(CoG):
     def _scan(self, marg: np.ndarray, axis: int, tot: np.ndarray) -> np.ndarray:
         """numpy path: ``(n,)`` shift along ``axis`` from ``(n, p)`` marginals, the whole grid
         scanned (the compiled kernel climbs from the calibrated CoG instead)."""
-        ll = (np.einsum("nu,nku->nk", marg, self._logs[:, axis].astype(np.float64))
-              - tot[:, None] * self._norms[:, axis])
+        if self._rows is None:
+            self._rows = (self._tables.rows(0), self._tables.rows(1))
+        ll = (np.einsum("nu,nku->nk", marg, self._rows[axis])
+              - tot[:, None] * self._tables.norms[:, axis])
         m = (ll.shape[1] - 1) // 2
         k = np.argmax(ll, axis=1)
         i = np.arange(len(k))
@@ -176,8 +209,8 @@ class ML(CoG):
     def describe(self) -> dict:
         d = super().describe()
         d["likelihood_grid"] = {"step_px": self.step, "extent_px": self.extent,
-                                "shifts": int(self._logs.shape[2])}
+                                "shifts": int(self._tables.norms.shape[2])}
         return d
 
 
-__all__ = ["ML", "likelihood_tables", "FLOOR"]
+__all__ = ["ML", "Tables", "FLOOR"]
