@@ -145,29 +145,10 @@ class Renderer:
 # -- scoring -------------------------------------------------------------------------------------
 def ttf_modes(sensor: Sensor) -> np.ndarray:
     """``(2n, 3)`` orthonormal slope patterns of tip, tilt and focus (x, y interleaved)."""
-    lay = geometry.layout(sensor)
-    xy = lay.centre_xy_m
-    n = xy.shape[0]
-    m = np.zeros((n, 2, 3))
-    m[:, 0, 0] = 1.0
-    m[:, 1, 1] = 1.0
-    m[:, :, 2] = xy
-    q, _ = np.linalg.qr(m.reshape(2 * n, 3))
-    return q
+    return metrics.ttf_modes(geometry.layout(sensor).centre_xy_m)
 
 
-def remove_ttf(err: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``(F, n, 2)`` errors minus their tip, tilt and focus (per frame; NaN subapertures
-    left out of the fit)."""
-    f, n, _ = err.shape
-    e = err.reshape(f, 2 * n)
-    ok = np.isfinite(e)
-    out = np.full_like(e, np.nan)
-    for k in range(f):
-        good = ok[k]
-        coef, *_ = np.linalg.lstsq(q[good], e[k, good], rcond=None)
-        out[k, good] = e[k, good] - q[good] @ coef
-    return out.reshape(f, n, 2)
+remove_ttf = metrics.remove_ttf
 
 
 def score(err: np.ndarray, q: np.ndarray | None) -> dict:

@@ -186,6 +186,29 @@ def test_full_pupil_by_radius(tmp_path):
     assert res["algorithms"]["cog"]["n"] == 3 * lay.n_valid
 
 
+def test_report_removes_pupil_wide_tip_tilt_and_focus(tmp_path, capsys):
+    """cmf = cog's error plus a tip and a focus (slope proportional to position, as a sodium
+    altitude change gives): raw it is far worse, with the three modes removed the two are
+    the same. Removing tip and tilt only, or fitting one axis, leaves cmf worse."""
+    sensor = small_pupil()
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(2)
+    n, k = lay.n_valid, 4
+    truths = np.zeros((k, n, 2))
+    noise = rng.normal(0, 0.05, (k, n, 2))
+    modes = 0.3 + 0.2 * np.asarray(lay.centre_xy_m)[None] * np.array([1.0, -0.5, 2.0, 0.7])[:, None, None]
+    st = T0 + DT * np.arange(k)
+    path = write_bag(tmp_path / "ttf.mcap", sensor, truths,
+                     {"cog": (st, truths + noise), "cmf": (st, truths + noise + modes)})
+    res = report.analyse(bagload.load_bag(path), crb=False)
+    cog, cmf = res["algorithms"]["cog"], res["algorithms"]["cmf"]
+    assert cmf["ratio_to_cog"] > 3
+    assert cmf["ttf"]["ratio_to_cog"] == pytest.approx(1.0, abs=1e-6)
+    assert cog["ttf"]["mean_euclid"] < cog["mean_euclid"]          # its own modes go too
+    assert cog["ttf"]["mean_euclid"] > 0.8 * cog["mean_euclid"]    # not much else
+    assert "tip, tilt and focus removed" in report.format_report(res)
+
+
 # -- CRB ------------------------------------------------------------------------------------------
 def test_mean_abs_norm_known_cases():
     s = 0.3

@@ -79,3 +79,34 @@ def table(rows: dict[str, dict], mas_per_px: float = 500.0) -> str:
         lines.append(f"{name:<12}{s['mean_euclid']:>12.4f}{s['mae']:>11.4f}{s['rms']:>9.4f}"
                      f"{s['bias_x']:>9.4f}{s['bias_y']:>9.4f}{s['mean_euclid_mas']:>13.1f}{s['n']:>10d}")
     return "\n".join(lines)
+
+
+def ttf_modes(centre_xy_m: np.ndarray) -> np.ndarray:
+    """``(2n, 3)`` orthonormal slope patterns of tip, tilt and focus over subapertures at
+    ``centre_xy_m (n, 2)`` (slopes x, y interleaved; focus: slope proportional to position)."""
+    xy = np.asarray(centre_xy_m, dtype=float)
+    m = np.zeros((xy.shape[0], 2, 3))
+    m[:, 0, 0] = 1.0
+    m[:, 1, 1] = 1.0
+    m[:, :, 2] = xy
+    q, _ = np.linalg.qr(m.reshape(-1, 3))
+    return q
+
+
+def remove_ttf(err: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``(K, n, 2)`` errors minus their pupil-wide tip, tilt and focus, frame by frame (the
+    same as removing them from estimate and truth; NaN subapertures left out of each fit).
+    ``q``: :func:`ttf_modes` of the same subapertures. LGS AO takes these three modes from a
+    natural guide star: the sodium profile's altitude is exactly focus (docs/accuracy.md)."""
+    k, n, _ = err.shape
+    e = err.reshape(k, 2 * n)
+    ok = np.isfinite(e)
+    out = np.full_like(e, np.nan, dtype=float)
+    for f in range(k):
+        good = ok[f]
+        if good.sum() < 4:
+            continue
+        coef, *_ = np.linalg.lstsq(q[good], e[f, good], rcond=None)
+        out[f, good] = e[f, good] - q[good] @ coef
+    return out.reshape(k, n, 2)
+

@@ -248,28 +248,25 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
-def _ml_line_impl(mg, lg, k, m, phases, margin, tot_norm):
-    # log-likelihood of one axis' marginals mg (p,) against shift k of the phase table
-    # lg (S, W): phase j = (k - m) mod S, whole pixels i = (k - m - j) / S, from column margin - i
-    d = k - m + phases * (m + 1)                    # >= 0: plain division below
-    j = d % phases
-    base = margin - (d // phases - (m + 1))
+def _ml_line_impl(mg, lg, j, base, tot_norm):
+    # log-likelihood of one axis' marginals mg (p,) against the shift whose marginals are
+    # columns base .. base + p - 1 of phase j of the phase table lg (S, W)
     acc = 0.0
     for u in range(mg.shape[0]):
         acc += np.float64(mg[u]) * np.float64(lg[j, base + u])
     return acc - tot_norm
 
 
-def _ml_search_impl(frame, origins, p, logs, norms, bias, margin, out):
+def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, out):
     # logs (n, 2, S, W) float32 phase tables, norms (n, 2, K), bias (n, 2): the calibrated
-    # CoG's offset; grid step 1 / S
+    # CoG's offset; shift k is phase kphase[k] from column kbase[k]; grid step 1 / S
     n = origins.shape[0]
     phases = logs.shape[2]
     step = 1.0 / phases
     kk = norms.shape[2]
     m = (kk - 1) // 2
     c = (p - 1) / 2.0
-    col = np.zeros(p, dtype=np.int64)
+    col = np.zeros(p, dtype=np.int32)               # at most p x 65535: fits (p <= 255)
     marg = np.empty((2, p), dtype=np.float32)
     for b in range(n):
         r0 = origins[b, 0]
@@ -279,9 +276,9 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, margin, out):
         tot = 0.0
         for i in range(p):
             row = frame[r0 + i, c0:c0 + p]
-            rs = 0
+            rs = np.int32(0)
             for j in range(p):
-                v = np.int64(row[j])
+                v = np.int32(row[j])
                 rs += v
                 col[j] += v
             marg[1, i] = rs
@@ -302,19 +299,19 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, margin, out):
             start = mom / tot - bias[b, a]
             k = int(np.floor(start / step + 0.5)) + m
             k = min(max(k, 1), kk - 2)
-            lm = _ml_line(mg, lg, k - 1, m, phases, margin, tot * nm[k - 1])
-            lk = _ml_line(mg, lg, k, m, phases, margin, tot * nm[k])
-            lp = _ml_line(mg, lg, k + 1, m, phases, margin, tot * nm[k + 1])
+            lm = _ml_line(mg, lg, kphase[k - 1], kbase[k - 1], tot * nm[k - 1])
+            lk = _ml_line(mg, lg, kphase[k], kbase[k], tot * nm[k])
+            lp = _ml_line(mg, lg, kphase[k + 1], kbase[k + 1], tot * nm[k + 1])
             while lm > lk and k > 1:
                 k -= 1
                 lp = lk
                 lk = lm
-                lm = _ml_line(mg, lg, k - 1, m, phases, margin, tot * nm[k - 1])
+                lm = _ml_line(mg, lg, kphase[k - 1], kbase[k - 1], tot * nm[k - 1])
             while lp > lk and k < kk - 2:
                 k += 1
                 lm = lk
                 lk = lp
-                lp = _ml_line(mg, lg, k + 1, m, phases, margin, tot * nm[k + 1])
+                lp = _ml_line(mg, lg, kphase[k + 1], kbase[k + 1], tot * nm[k + 1])
             if lm > lk or lp > lk:                 # the climb hit the table's edge
                 out[b, a] = start
                 continue
@@ -410,9 +407,13 @@ def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
     px); the climb starts at the block's CoG minus ``bias (n, 2)``, which is returned where
     it leaves the grid. NaN for a block without light."""
     out = np.empty((origins.shape[0], 2))
+    kk = norms.shape[2]
+    m = (kk - 1) // 2
+    whole, phase = np.divmod(np.arange(kk) - m, logs.shape[2])
     _ml_search(frame, origins, int(p), np.ascontiguousarray(logs, dtype=np.float32),
                np.ascontiguousarray(norms, dtype=np.float64),
-               np.ascontiguousarray(bias, dtype=np.float64), int(margin), out)
+               np.ascontiguousarray(bias, dtype=np.float64), phase.astype(np.int64),
+               (int(margin) - whole).astype(np.int64), out)
     return out
 
 

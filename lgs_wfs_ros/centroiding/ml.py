@@ -13,17 +13,16 @@ total)::
 
 (the field's truncation is in the sums of ``a`` and ``b``), so the 2-D estimate is two 1-D
 maximisations of 16 terms each. ``a`` and ``b`` come from the sodium profile the whole pupil
-calibrates (:mod:`.pupil`), rendered by the simulator's spot model at shifts on a grid of
-``step_px``: ``log a`` and ``log sum a`` are tabulated per subaperture, ``(n, 2, K, p)``
-float32 and ``(n, 2, K)`` (K = 2 extent / step + 1: 33 shifts, 12 MB for the full pupil), and
-rebuilt at each refit (one render per grid shift: a diagonal shift gives both axes, since a
-factor common to one shift cancels in its likelihood).
+calibrates (:mod:`.pupil`), rendered by the simulator's spot model and tabulated as logs per
+subaperture on a grid of ``step_px`` (:class:`Tables`: only the sub-pixel phases are
+rendered, a whole-pixel shift moves the marginals; 2 MB for the full pupil at the default
+1/4 px), rebuilt at each refit (0.3 s).
 
 Per frame (:func:`.kernels.ml_search`, one compiled pass per block): the marginals, the
 pupil-calibrated CoG as the start, a hill climb on the grid from there and a parabola through
 the best grid point and its neighbours. A climb that reaches the table's edge (a shift beyond
 ``extent_px``) returns the calibrated CoG instead. Without numba (or on float frames and
-stacks) numpy scans the whole grid (~6 ms a full frame instead of ~0.5 ms).
+stacks) numpy scans the whole grid (~6 ms a full frame instead of ~0.6 ms).
 
 Measured on unseen profile families (``benchmarks/bench_accuracy.py``): 1.00-1.08x the
 Cramer-Rao bound where the calibrated CoG is at 0.83-2.6x and the default CMF at 1.15-3.2x.
@@ -54,9 +53,9 @@ class Tables:
     (axis 0; ``b`` for axis 1) for ``w`` in ``0 .. p + 2 margin - 1``, and the marginals of a
     spot displaced by ``d_k = (k - M) step`` are the ``p`` entries from ``margin - i``.
     ``norms[:, a, k]`` is the log of their sum (the light the field keeps). Shapes:
-    ``logs (n, 2, S, p + 2 margin)`` float32 (4 MB for the full pupil, 3x less than one row
-    per shift: the frame's pixels and the calibration's accumulator share the cache with
-    it), ``norms (n, 2, K)``, ``K = 2 M + 1``, ``M = extent / step``.
+    ``logs (n, 2, S, p + 2 margin)`` float32 (2 MB for the full pupil at S = 4, 3x less than
+    one row per shift: the frame's pixels and the calibration's accumulator share the cache
+    with it), ``norms (n, 2, K)``, ``K = 2 M + 1``, ``M = extent / step``.
     """
 
     def __init__(self, spots_of, sensor, step: float, extent: float):
@@ -94,7 +93,8 @@ class ML(CoG):
     """Poisson maximum likelihood on the block marginals (see the module docstring).
 
     Options:
-        step_px: grid step of the likelihood tables, px (0.125; the parabola refines it).
+        step_px: grid step of the likelihood tables, px (0.25; the parabola refines it: 1/8
+            and 1/16 gave the same errors on the accuracy cases).
         extent_px: largest shift tabulated, px (2.0); beyond it the calibrated CoG is
             returned.
         background: counts per pixel (default ``sensor.background_e``); must be 0: the
@@ -113,7 +113,7 @@ class ML(CoG):
             raise ValueError("ml needs the polar detector (the spot must be separable in the "
                              "block axes); on a cartesian detector use cmf, or cog with "
                              "bias=pupil")
-        step = number("step_px", options.pop("step_px", 0.125), minimum=0, strict=True)
+        step = number("step_px", options.pop("step_px", 0.25), minimum=0, strict=True)
         if abs(1.0 / step - round(1.0 / step)) > 1e-9:
             raise ValueError(f"ml: step_px must be 1 / an integer (0.25, 0.125, ...), got {step}")
         extent = number("extent_px", options.pop("extent_px", 2.0), minimum=0, strict=True)

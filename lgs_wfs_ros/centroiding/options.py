@@ -161,7 +161,7 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                   "(refuse), or run and count them in the description (warn).",
                   {"choices": ("refuse", "warn")}),
                  *_PUPIL),
-    "ml": _rows("ml", ("step_px", 0.125, "Grid step of the likelihood tables, pixels (a "
+    "ml": _rows("ml", ("step_px", 0.25, "Grid step of the likelihood tables, pixels (a "
                        "parabola through the best grid point refines it).",
                        {"low": 0.01, "high": 1.0}),
                 ("extent_px", 2.0, "Largest shift tabulated, pixels (beyond it the "
