@@ -113,6 +113,9 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     "cog": ("cog", {}),
     "cmf": ("cmf", {"cmf.weighting": "model", "cmf.reference": "model", "cmf.linearize": False}),
     "ann": ("ann", {}),
+    "ml": ("ml", {}),            # polar only: the live simulator's sensor, not the player's bag
+    # refits (~0.15 s) in a thread, each installed 1 s of frames after its period ends
+    "ml_async": ("ml", {"ml.pupil_async": True, "ml.pupil_async_lag": 200}),
 }
 
 
@@ -136,7 +139,7 @@ def specs(transport: str, alg: str, source: str, sensor: Sensor, rate: float, ou
     rec = NodeSpec("recorder_node", "wfs", {
         "output": str(out), "overwrite": True, "discover": False, "compression": "none",
         "frame_every": 1 if shm else 0, "topics": topics + (["/wfs/frame"] if shm else [])})
-    cen = NodeSpec("centroider_node", alg, {"algorithm": alg, "log_period_s": 0.5,
+    cen = NodeSpec("centroider_node", alg, {"algorithm": ALGORITHMS[alg][0], "log_period_s": 0.5,
                                             "frame_transport": transport, **params},
                    {"frame": "/wfs/frame", "sensor": "/wfs/sensor"})
     tp = {"frame_transport": transport, "frame_publish_hz": 10.0, "frame_lockstep": lockstep}

@@ -24,7 +24,7 @@ the best grid point and its neighbours. A climb that reaches the table's edge (a
 ``extent_px``) returns the calibrated CoG instead. Without numba (or on float frames and
 stacks) numpy scans the whole grid (~6 ms a full frame instead of ~0.6 ms).
 
-Measured on unseen profile families (``benchmarks/bench_accuracy.py``): 1.00-1.08x the
+Measured on unseen profile families (``benchmarks/bench_accuracy.py``, polar): 1.00-1.08x the
 Cramer-Rao bound where the calibrated CoG is at 0.83-2.6x and the default CMF at 1.15-3.2x.
 On a cartesian detector the spot is not separable in the pixel axes and this estimator is
 refused (use ``cmf`` or ``cog`` with ``bias=pupil``).
@@ -52,7 +52,8 @@ class Tables:
     ``margin`` pixels wider on each side: ``logs[:, a, j, w]`` is ``log a(w - margin - j step)``
     (axis 0; ``b`` for axis 1) for ``w`` in ``0 .. p + 2 margin - 1``, and the marginals of a
     spot displaced by ``d_k = (k - M) step`` are the ``p`` entries from ``margin - i``.
-    ``norms[:, a, k]`` is the log of their sum (the light the field keeps). Shapes:
+    ``norms[:, a, k]`` is the log of their sum (the light the field keeps); ``bias (n, 2)``
+    the CoG in the field of the spot at the true centre (the calibrated CoG's offset). Shapes:
     ``logs (n, 2, S, p + 2 margin)`` float32 (2 MB for the full pupil at S = 4, 3x less than
     one row per shift: the frame's pixels and the calibration's accumulator share the cache
     with it), ``norms (n, 2, K)``, ``K = 2 M + 1``, ``M = extent / step``.
@@ -71,6 +72,12 @@ class Tables:
             img = spots.image_at(np.full((spots.n, 2), j * self.step))   # (n, w, w) [v, u]
             marg[:, 0, j] = img.sum(axis=1)
             marg[:, 1, j] = img.sum(axis=2)
+        # phase 0 is the spot at the true centre: its CoG in the field is the calibrated
+        # CoG's bias (what pupil.cog_bias gives, without rendering the reference again)
+        centred = marg[:, :, 0, self.margin:self.margin + p]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bias = centred @ (np.arange(p) - (p - 1) / 2.0) / centred.sum(axis=2)
+        self.bias = np.where(np.isfinite(bias), bias, 0.0)                    # (n, 2)
         floor = FLOOR * marg.max(axis=(2, 3), keepdims=True)
         marg = np.maximum(marg, np.where(floor > 0, floor, 1e-300))
         self.logs = np.log(marg).astype(np.float32)
@@ -139,8 +146,8 @@ class ML(CoG):
         def spots_of(sensor):
             return ProfileSpots(sensor, self.layout.r_m, self.layout.e, calibration.nodes_m,
                                 calibration.light, 1.5)
-        return {"version": calibration.version, "bias": calibration.cog_bias(),
-                "tables": Tables(spots_of, self.sensor, self.step, self.extent)}
+        tables = Tables(spots_of, self.sensor, self.step, self.extent)
+        return {"version": calibration.version, "bias": tables.bias, "tables": tables}
 
     def _install(self, payload: dict) -> None:
         self._version = payload["version"]

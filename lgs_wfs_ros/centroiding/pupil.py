@@ -272,8 +272,10 @@ class PupilCalibration:
 
     def _work(self, clone, snap):
         clone._fit(snap, snap[-1])
+        if self.prepare is not None:                         # it renders what it needs
+            return clone, self.prepare(clone)
         clone.reference()                                    # rendered here, not on a frame
-        return clone, (self.prepare(clone) if self.prepare is not None else None)
+        return clone, None
 
     def _poll(self) -> bool:
         """Install a finished background refit (fit state and ``payload``); True if so."""
