@@ -151,3 +151,33 @@ def test_refused_where_the_model_does_not_hold():
         table.build("ml", small(), {"step_px": 0.5, "extent_px": 0.25})
     with pytest.raises(ValueError, match="allowed"):
         table.build("ml", small(), {"bias": "none"})
+
+
+def test_the_calibration_fits_the_same_profile_from_marginals_as_from_frames():
+    """On a polar detector the fit reads the mean images only through their column sums and
+    row moments: fed the block marginals (what ml adds in its pass) it finds the profile
+    and the tilt blur it finds from the whole frames."""
+    from lgs_wfs_ros.centroiding.pupil import PupilCalibration
+    sensor = small(photons=500.0)
+    lay = geometry.layout(sensor)
+    n = lay.n_valid
+    evo, t0 = sodium.unseen_sequence("sporadic", 1, sensor.frame_rate_hz, seed=4)
+    model = SpotModel(sensor, lay.r_m, lay.e, evo.altitude_m, evo.at_many(np.array([t0]))[0],
+                      max_shift_px=3.0)
+    a, b = PupilCalibration(sensor, period=20), PupilCalibration(sensor, period=20)
+    rng = np.random.default_rng(9)
+    for _ in range(40):
+        img = model.images(rng.normal(0, 0.5, (n, 2)))[0]
+        counts = rng.poisson(img / img.reshape(n, -1).sum(axis=1)[:, None, None] * 500)
+        frame = frame_of(sensor, counts)
+        a.observe_frame(frame)
+        buf = b.marginal_buffer()
+        buf[:, 0] += counts.sum(axis=1)
+        buf[:, 1] += counts.sum(axis=2)
+        b.observed_marginals(True)
+    assert a.fits == b.fits == 2
+    np.testing.assert_allclose(b.light, a.light, rtol=1e-6, atol=1e-9 * a.light.max())
+    assert b.blur_px == pytest.approx(a.blur_px, abs=1e-9)
+    with pytest.raises(ValueError, match="polar"):
+        PupilCalibration(Sensor(detector="cartesian", n_subaps=8, diameter_m=4.0,
+                                obstruction_m=0.5)).marginal_buffer()

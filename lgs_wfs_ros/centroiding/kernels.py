@@ -257,7 +257,7 @@ def _ml_line_impl(mg, lg, j, base, tot_norm):
     return acc - tot_norm
 
 
-def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, out):
+def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, out):
     # logs (n, 2, S, W) float32 phase tables, norms (n, 2, K), bias (n, 2): the calibrated
     # CoG's offset; shift k is phase kphase[k] from column kbase[k]; grid step 1 / S
     n = origins.shape[0]
@@ -285,6 +285,10 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, out):
             tot += rs
         for j in range(p):
             marg[0, j] = col[j]
+        if acc.shape[0] == n:                       # the calibration's sums of marginals
+            for j in range(p):
+                acc[b, 0, j] += marg[0, j]
+                acc[b, 1, j] += marg[1, j]
         if not tot > 0:
             out[b, 0] = np.nan
             out[b, 1] = np.nan
@@ -400,23 +404,31 @@ def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m
 
 
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
-              norms: np.ndarray, bias: np.ndarray, margin: int) -> np.ndarray:
+              norms: np.ndarray, bias: np.ndarray, margin: int,
+              acc: np.ndarray | None = None) -> np.ndarray:
     """``(n, 2)`` maximum-likelihood shifts, px, block axes, of each valid block of an
     integer frame (see :func:`fits`) against the phase tables of :class:`.ml.Tables`
     (``logs (n, 2, S, p + 2 margin)`` float32, ``norms (n, 2, K)``; grid step ``1 / S``
     px); the climb starts at the block's CoG minus ``bias (n, 2)``, which is returned where
-    it leaves the grid. NaN for a block without light."""
+    it leaves the grid. NaN for a block without light. ``acc`` (optional, ``(n, 2, p)``
+    float64): each block's marginals (column sums, row sums) are added into it, read in
+    the same pass (the pupil calibration's :meth:`~.pupil.PupilCalibration.marginal_buffer`)."""
     out = np.empty((origins.shape[0], 2))
+    if acc is None:
+        acc = _NO_ACC
+    elif acc.shape != (origins.shape[0], 2, p) or acc.dtype != np.float64:
+        raise ValueError(f"acc must be ({origins.shape[0]}, 2, {p}) float64")
     kk = norms.shape[2]
     m = (kk - 1) // 2
     whole, phase = np.divmod(np.arange(kk) - m, logs.shape[2])
     _ml_search(frame, origins, int(p), np.ascontiguousarray(logs, dtype=np.float32),
                np.ascontiguousarray(norms, dtype=np.float64),
                np.ascontiguousarray(bias, dtype=np.float64), phase.astype(np.int64),
-               (int(margin) - whole).astype(np.int64), out)
+               (int(margin) - whole).astype(np.int64), acc, out)
     return out
 
 
+_NO_ACC = np.zeros((0, 2, 1))
 _warm = False
 
 

@@ -18,7 +18,8 @@ subaperture on a grid of ``step_px`` (:class:`Tables`: only the sub-pixel phases
 rendered, a whole-pixel shift moves the marginals; 2 MB for the full pupil at the default
 1/4 px), rebuilt at each refit (0.3 s).
 
-Per frame (:func:`.kernels.ml_search`, one compiled pass per block): the marginals, the
+Per frame (:func:`.kernels.ml_search`, one compiled pass per block): the marginals (added
+into the calibration's sums too: on a polar detector they are all its fit needs), the
 pupil-calibrated CoG as the start, a hill climb on the grid from there and a parabola through
 the best grid point and its neighbours. A climb that reaches the table's edge (a shift beyond
 ``extent_px``) returns the calibrated CoG instead. Without numba (or on float frames and
@@ -164,24 +165,26 @@ class ML(CoG):
 
     # -- frames --------------------------------------------------------------------------
     def centroid(self, data) -> np.ndarray:
-        """As :meth:`Centroider.centroid`: the calibration sees the frame, then each block's
-        likelihood is maximised against the current tables."""
+        """As :meth:`Centroider.centroid`: each block's likelihood is maximised against the
+        tables of the calibration's current profile, then the calibration sees the frame
+        (its block marginals, read in the same pass; a refit it makes applies from the next
+        frame on)."""
+        self._refresh()
         if kernels.fits(data, self.sensor.frame_shape):
-            self.pupil.observe_frame(data)
-            self._refresh()
+            acc = self.pupil.marginal_buffer()
             t = self._tables
             out = kernels.ml_search(data, kernels.origins(self), self.p, t.logs, t.norms,
-                                    self._bias, t.margin)
+                                    self._bias, t.margin, acc)
+            self.pupil.observed_marginals(acc is not None)
             return self.finish(out, np.isfinite(out).all(axis=1))
         flat = self.float_stack(data).reshape(self.n, -1)
         tot = flat.sum(axis=1, dtype=np.float64)
         ok = np.isfinite(tot) & (tot > 0)
         flat = np.where(ok[:, None], flat, 0)
-        self.pupil.observe(flat, ok)
-        self._refresh()
         stack = flat.reshape(self.n, self.p, self.p).astype(np.float64)
         out = np.stack([self._scan(stack.sum(axis=1), 0, tot),
                         self._scan(stack.sum(axis=2), 1, tot)], axis=1)
+        self.pupil.observe(flat, ok)
         return self.finish(out, ok)
 
     def _scan(self, marg: np.ndarray, axis: int, tot: np.ndarray) -> np.ndarray:

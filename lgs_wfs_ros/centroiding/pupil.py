@@ -128,6 +128,7 @@ class PupilCalibration:
         self._acc = np.zeros((self.n, self.sensor.pixels ** 2))
         self._acc_rows = None                    # (G*G, p*p) float32, see observe_rows
         self._acc_frame = None                   # a detector frame's shape, see observe_frame
+        self._acc_marg = None                    # (n, 2, p) float64, see marginal_buffer
         self._count = np.zeros(self.n)
         self._frames = 0
         self.state = None
@@ -206,6 +207,28 @@ class PupilCalibration:
         kind = np.uint32 if frame.dtype.kind == "u" and frame.dtype.itemsize <= 2 else np.float64
         return self._add_whole("_acc_frame", frame, kind)
 
+    def marginal_buffer(self) -> np.ndarray | None:
+        """Polar detector only: ``(n, 2, p)`` float64 sums to add this frame's block
+        marginals into (``[:, 0]`` column sums, along e; ``[:, 1]`` row sums, across e), or
+        None when ``pupil_stride`` skips this frame; then call :meth:`observed_marginals`.
+        On a polar detector the fit reads the mean images only through their column sums
+        (the bins along e) and row moments (the tilt blur across e), so the marginals are
+        all it needs: 2,784 x 32 numbers a frame instead of the whole frame."""
+        if self.sensor.detector != "polar":
+            raise ValueError("marginals describe the mean images only on a polar detector")
+        if self._frames % self.stride:
+            return None
+        if self._acc_marg is None:
+            self._acc_marg = np.zeros((self.n, 2, self.sensor.pixels))
+        return self._acc_marg
+
+    def observed_marginals(self, added: bool) -> bool:
+        """Count a frame whose marginals went (``added``) or not into :meth:`marginal_buffer`;
+        True when a refit was installed on it."""
+        if added:
+            self._count += 1
+        return self._tick()
+
     def _add_whole(self, name: str, data: np.ndarray, dtype) -> bool:
         """Add a whole array into the accumulator ``name`` (made on first use)."""
         if self._frames % self.stride == 0:
@@ -239,13 +262,16 @@ class PupilCalibration:
         """Hand over the accumulators (fresh zero ones stay): ``(acc, count, acc_frame,
         acc_rows, rows_index, frames since the last take)``."""
         snap = (self._acc, self._count, self._acc_frame, self._acc_rows,
-                getattr(self, "_rows_index", None), self._frames - self._taken_at)
+                getattr(self, "_rows_index", None), self._frames - self._taken_at,
+                self._acc_marg)
         self._acc = np.zeros_like(self._acc)
         self._count = np.zeros_like(self._count)
         if self._acc_frame is not None:
             self._acc_frame = np.zeros_like(self._acc_frame)
         if self._acc_rows is not None:
             self._acc_rows = np.zeros_like(self._acc_rows)
+        if self._acc_marg is not None:
+            self._acc_marg = np.zeros_like(self._acc_marg)
         self._taken_at = self._frames
         return snap
 
@@ -271,7 +297,7 @@ class PupilCalibration:
         self._job = self._pool.submit(self._work, clone, snap)
 
     def _work(self, clone, snap):
-        clone._fit(snap, snap[-1])
+        clone._fit(snap, snap[5])
         if self.prepare is not None:                         # it renders what it needs
             return clone, self.prepare(clone)
         clone.reference()                                    # rendered here, not on a frame
@@ -298,7 +324,11 @@ class PupilCalibration:
     def _fit(self, snap: tuple, frames: int) -> bool:
         """Refit from a :meth:`_take` snapshot covering ``frames`` frames; False if it held
         no usable subaperture (nothing changed)."""
-        acc, count, acc_frame, acc_rows, rows_index, _ = snap
+        acc, count, acc_frame, acc_rows, rows_index, _, acc_marg = snap
+        if acc_marg is not None:           # an image with those marginals: outer(rows, cols) / sum
+            tot = acc_marg[:, 0].sum(axis=1)
+            img = acc_marg[:, 1, :, None] * acc_marg[:, 0, None, :]
+            acc += (img / np.where(tot > 0, tot, 1.0)[:, None, None]).reshape(self.n, -1)
         if acc_frame is not None:
             acc += geometry.frame_to_stack(acc_frame, self.layout).reshape(self.n, -1)
         if acc_rows is not None:
