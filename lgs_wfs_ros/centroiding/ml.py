@@ -175,7 +175,8 @@ class ML(CoG):
             t = self._tables
             out = kernels.ml_search(data, kernels.origins(self), self.p, t.logs, t.norms,
                                     self._bias, t.margin, acc)
-            self.pupil.observed_marginals(acc is not None)
+            if self.pupil.observed_marginals(acc is not None):
+                self._refresh()                   # the new tables now, on the refit's frame
             return self.finish(out, np.isfinite(out).all(axis=1))
         flat = self.float_stack(data).reshape(self.n, -1)
         tot = flat.sum(axis=1, dtype=np.float64)
@@ -184,7 +185,8 @@ class ML(CoG):
         stack = flat.reshape(self.n, self.p, self.p).astype(np.float64)
         out = np.stack([self._scan(stack.sum(axis=1), 0, tot),
                         self._scan(stack.sum(axis=2), 1, tot)], axis=1)
-        self.pupil.observe(flat, ok)
+        if self.pupil.observe(flat, ok):
+            self._refresh()
         return self.finish(out, ok)
 
     def _scan(self, marg: np.ndarray, axis: int, tot: np.ndarray) -> np.ndarray:
