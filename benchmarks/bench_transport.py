@@ -114,8 +114,9 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     "cmf": ("cmf", {"cmf.weighting": "model", "cmf.reference": "model", "cmf.linearize": False}),
     "ann": ("ann", {}),
     "ml": ("ml", {}),            # polar only: the live simulator's sensor, not the player's bag
-    # refits (~0.15 s) in a thread, each installed 1 s of frames after its period ends
-    "ml_async": ("ml", {"ml.pupil_async": True, "ml.pupil_async_lag": 200}),
+    # refits in a thread, each installed as soon as it is ready (lag 0: the frame path never
+    # waits; the first refit builds the thin-layer basis, ~3 s)
+    "ml_async": ("ml", {"ml.pupil_async": True, "ml.pupil_async_lag": 0}),
 }
 
 
