@@ -2,6 +2,8 @@
 the centroider reads them in place; slopes join truths by stamp exactly as with 'ros', the ROS
 frame topic keeps a decimated copy, and the counters account for every frame."""
 
+import time
+
 import numpy as np
 import pytest
 
@@ -23,11 +25,17 @@ def _listen(ros, topics):
     from sensor_msgs.msg import Image
     from lgs_wfs_ros.ros import qos
     got = {t: {} for t in topics}
+    arrived = {t: [] for t in topics}           # monotonic arrival times, s
+
+    def take(cdr, t):
+        got[t].__setitem__(*bags.decode_image(cdr)[::3])
+        arrived[t].append(time.monotonic())
     node = ros.add(Node("listener", context=ros.context))
     for t in topics:
-        node.create_subscription(
-            Image, t, lambda cdr, t=t: got[t].__setitem__(*bags.decode_image(cdr)[::3]),
-            qos.for_topic(t) if not t.endswith("frame") else qos.FRAME, raw=True)
+        node.create_subscription(Image, t, lambda cdr, t=t: take(cdr, t),
+                                 qos.for_topic(t) if not t.endswith("frame") else qos.FRAME,
+                                 raw=True)
+    got["_arrived"] = arrived
     return got
 
 
@@ -39,6 +47,7 @@ def test_simulator_to_centroider_through_shared_memory(ros, publish_hz):
 
     n = 40
     got = _listen(ros, ["/cog/slopes", "/wfs/true_slopes", "/wfs/frame"])
+    arrived = got.pop("_arrived")
     cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
                                  parameter_overrides=[Parameter("frame_transport", value="shm")]))
     overrides = [Parameter(k, value=v) for k, v in SMALL.items()] + [
@@ -63,8 +72,12 @@ def test_simulator_to_centroider_through_shared_memory(ros, publish_hz):
         for stamp, frame in frames.items():
             np.testing.assert_allclose(geometry.grid_to_slopes(got["/cog/slopes"][stamp], lay),
                                        lib.centroid(frame), atol=1e-5)
-    else:                       # 0.4 s of frames at 10 Hz on ROS: 4 or 5, not 40
-        assert 2 <= len(frames) <= 6 and set(frames) <= set(got["/wfs/true_slopes"])
+    else:                       # ~0.4 s of frames at 10 Hz on ROS: about 5, not 40
+        # the decimation runs on the wall clock, and a loaded machine stretches the 0.4 s
+        # (8 frames were seen in a full run): bound it by the span the truths arrived over
+        span = max(arrived["/wfs/true_slopes"]) - min(arrived["/wfs/true_slopes"])
+        assert 2 <= len(frames) <= 10.0 * span + 2 and len(frames) < n, (len(frames), span)
+        assert set(frames) <= set(got["/wfs/true_slopes"])
 
 
 def test_player_through_shared_memory(ros, tmp_path):
