@@ -109,4 +109,3 @@ def remove_ttf(err: np.ndarray, q: np.ndarray) -> np.ndarray:
         coef, *_ = np.linalg.lstsq(q[good], e[f, good], rcond=None)
         out[f, good] = e[f, good] - q[good] @ coef
     return out.reshape(k, n, 2)
-

@@ -37,7 +37,7 @@ import numpy as np
 
 from . import kernels
 from .cog import CoG
-from .base import check_options, number
+from .base import Centroider, check_options, number
 from ..optics.model_spot import ProfileSpots
 
 #: smallest tabulated light, relative to the largest of the subaperture's axis (a count far
@@ -210,9 +210,7 @@ class ML(CoG):
             cog = marg @ (np.arange(self.p) - self.centre) / tot - self._bias[:, axis]
         return np.where(inner, est, cog)
 
-    def centroid_many(self, frames) -> np.ndarray:
-        return np.stack([self.centroid(f) for f in frames]) if len(frames) else \
-            np.empty((0, self.n, 2))
+    centroid_many = Centroider.centroid_many     # frame by frame: the calibration is stateful
 
     def reset(self) -> None:
         self.pupil.reset()

@@ -260,7 +260,7 @@ class PupilCalibration:
     # -- fit --------------------------------------------------------------------------
     def _take(self) -> tuple:
         """Hand over the accumulators (fresh zero ones stay): ``(acc, count, acc_frame,
-        acc_rows, rows_index, frames since the last take)``."""
+        acc_rows, rows_index, frames since the last take, acc_marg)``."""
         snap = (self._acc, self._count, self._acc_frame, self._acc_rows,
                 getattr(self, "_rows_index", None), self._frames - self._taken_at,
                 self._acc_marg)
