@@ -55,6 +55,46 @@ def restamp(cdr, shift_ns: int) -> bytes:
     return b"".join((mv[:4], struct.pack("<iI", sec, nanosec), mv[12:]))
 
 
+class PlaySchedule:
+    """When each frame of a (looped) bag is due, on one clock for the whole run.
+
+    A frame late because the player was starved goes out at once and the next ones keep
+    their slots, so a 10 s run at 800 Hz offers 8,000 frames whatever the hiccups (each
+    pass used to restart the clock: every pass's lateness was lost from the offered rate).
+    Changing ``rate`` (or between a fixed rate and the recorded timing) starts the new
+    pacing from the frame it applies to.
+
+    Args:
+        clock: seconds, monotonic (``time.monotonic``).
+    """
+
+    def __init__(self, clock=time.monotonic):
+        self._clock = clock
+        self._mode = None            # the rate the anchor was taken at (None: recorded)
+        self._anchor = None          # (clock s, frames sent before it, bag ns before it)
+        self.sent = 0                # frames scheduled so far
+        self._bag_ns = 0             # recorded time elapsed at the last frame, ns
+
+    def due(self, rate: float | None, elapsed_ns: int) -> float | None:
+        """The clock time the next frame is due (None: now, ``rate`` 0 is 'max').
+
+        Args:
+            rate: Hz (> 0), None (the recorded timing) or 0.0 (as fast as consumers allow).
+            elapsed_ns: recorded time of this frame since the first frame of the run, ns
+                (pass ``k`` of a looped bag adds ``k`` bag lengths).
+        """
+        if self._anchor is None or rate != self._mode:
+            self._mode = rate
+            self._anchor = (self._clock(), self.sent, elapsed_ns)
+        t0, n0, ns0 = self._anchor
+        self.sent += 1
+        if rate is None:
+            return t0 + (elapsed_ns - ns0) * 1e-9
+        if rate > 0:
+            return t0 + (self.sent - 1 - n0) / rate
+        return None
+
+
 class PlayerNode(FrameSource, Node):
     def __init__(self, **kwargs):
         kwargs.setdefault("namespace", "wfs")
@@ -104,6 +144,8 @@ class PlayerNode(FrameSource, Node):
         self._stop = threading.Event()
         self._pass = 0
         self._span_ns = 0          # bag length in stamps (first pass), for restamp_loops
+        self._schedule = PlaySchedule()
+        self._first_stamp = None   # the first frame's recorded stamp (pass 0)
         self._cache = None         # [(kind, cdr)] of a looped bag that fits in cache_mb
         self.health = health.Health(self, lambda: {**self.published, "pass": self._pass})
         self.health.set_state(health.OK, f"playing {path}")
@@ -182,8 +224,6 @@ class PlayerNode(FrameSource, Node):
         self.finished.set()
 
     def _play_once(self):
-        t0 = time.monotonic()
-        first_stamp = None
         sent = 0
         window = self.get_parameter("in_flight").value
         pending = collections.deque(maxlen=window)   # stamps of the last frames sent
@@ -197,22 +237,21 @@ class PlayerNode(FrameSource, Node):
                 skip_sensor = False
                 continue
             rate = parse_rate(self.get_parameter("rate").value)
-            if shift and kind != "sensor":
-                cdr = restamp(cdr, shift)
             if kind == "frame":
-                stamp = bags.peek_stamp(cdr)
-                stamps.append(stamp)
-                if rate is None:
-                    first_stamp = stamp if first_stamp is None else first_stamp
-                    due = t0 + (stamp - first_stamp) * 1e-9
-                elif rate > 0:
-                    due = t0 + sent / rate
-                else:
-                    due = None
+                recorded = bags.peek_stamp(cdr)
+                stamps.append(recorded)
+                if self._first_stamp is None:
+                    self._first_stamp = recorded
+                elapsed = self._pass * self._span_ns + recorded - self._first_stamp
+                due = self._schedule.due(rate, elapsed)
                 if due is not None:
                     delay = due - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
+            if shift and kind != "sensor":
+                cdr = restamp(cdr, shift)
+            if kind == "frame":
+                stamp = recorded + shift
             if kind == "frame" and self._outlet.shm is not None:   # decoded into the loan
                 self._outlet.publish(bags.decode_image(cdr)[3], stamp, self._sensor_id,
                                      stop=self._stop.is_set)
