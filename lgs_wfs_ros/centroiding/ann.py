@@ -19,6 +19,12 @@ is accepted too):
 ``lgs_wfs.conditioning_input``  name of that second input (default "e")
 ``lgs_wfs.conditioning_frame``  "detector" (default: e in detector axes) | "pixel" (e in the
                                 block's pixel axes: (1, 0) on a polar detector)
+``lgs_wfs.input``           "pixels" (default) | "marginals": a polar-detector model that
+                            reads each subaperture's column sums ``(batch, p)`` (raw counts,
+                            a function of block x: along e), its reference input the same
+                            sums of the reference (unit sum), its output ``(batch, 1)`` the
+                            shift along e; block y (across e: the core alone) is the
+                            pupil-calibrated CoG of the row sums (``learning/margtrain.py``)
 ``lgs_wfs.input_name``      name of the pixel input (default: the first input)
 ``lgs_wfs.training``        free-form JSON, reported by ``describe()``
 ``lgs_wfs.domain``          the training domain (:mod:`.domain`): radius range, detectors,
@@ -56,6 +62,7 @@ import numpy as np
 
 from ..optics import geometry
 from . import domain as model_domain
+from . import kernels
 from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
@@ -138,13 +145,14 @@ def read_metadata(meta_map: dict) -> dict:
                 raw[k[len(META):]] = json.loads(v)
             except (json.JSONDecodeError, TypeError):
                 raw[k[len(META):]] = v
-    md = {"detector": "any", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
+    md = {"detector": "any", "input": "pixels", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
           "conditioning": "none", "conditioning_input": "e", "conditioning_frame": "detector",
           "input_name": None, "training": None, "domain": None}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
-    checks = [("detector", ("polar", "cartesian", "any")), ("input_norm", ("sum", "none")),
+    checks = [("detector", ("polar", "cartesian", "any")), ("input", ("pixels", "marginals")),
+              ("input_norm", ("sum", "none")),
               ("output_frame", ("local", "detector", "block")),
               ("conditioning", ("none", "e", "e_r", "reference")),
               ("conditioning_frame", ("detector", "pixel"))]
@@ -158,6 +166,9 @@ def read_metadata(meta_map: dict) -> dict:
         raise ValueError(f"ann: bad metadata lgs_wfs.pixels/output_scale: {exc}") from exc
     if not np.isfinite(md["output_scale"]):
         raise ValueError("ann: metadata lgs_wfs.output_scale must be finite")
+    if md["input"] == "marginals" and (md["detector"] != "polar" or md["conditioning"] != "reference"):
+        raise ValueError("ann: a marginals model must declare lgs_wfs.detector polar and "
+                         "lgs_wfs.conditioning reference")
     return md
 
 
@@ -341,7 +352,9 @@ class ANN(Centroider):
         self.input_name = md["input_name"] or first
         if self.input_name not in inputs:
             raise ValueError(f"ann: model has no input {self.input_name!r} (inputs: {list(inputs)})")
-        _check_width(inputs[self.input_name], self.p * self.p, "pixel input", self.n)
+        self.marginals = md["input"] == "marginals"
+        _check_width(inputs[self.input_name], self.p if self.marginals else self.p * self.p,
+                     "pixel input", self.n)
         self.cond = None
         if md["conditioning"] != "none":
             cname = md["conditioning_input"]
@@ -365,13 +378,22 @@ class ANN(Centroider):
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
         self.folded = None
-        if md["input_norm"] == "sum":
+        if md["input_norm"] == "sum" and not self.marginals:
             self.folded = self._fold()
+        if self.marginals:
+            kernels.warm_up()
 
     def _reference_code(self) -> np.ndarray:
         """``(n, h)`` float32: the calibration's current references (unit sum, block axes)
         through the model's reference matrix."""
-        ref = self.pupil.reference()[0].reshape(self.n, -1)
+        ref = self.pupil.reference()[0]
+        if self.marginals:                  # column sums; the row sums' CoG for block y
+            rows = ref.sum(axis=2)
+            tot = rows.sum(axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                self._bias_y = np.where(tot > 0, rows @ (np.arange(self.p) - self.centre) / tot, 0.0)
+            ref = ref.sum(axis=1)
+        ref = ref.reshape(self.n, -1)
         tot = ref.sum(axis=1, keepdims=True)
         ref = np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
         return np.ascontiguousarray(ref @ self._ref_w, dtype=np.float32)
@@ -391,6 +413,8 @@ class ANN(Centroider):
         """The sensor against the model's training domain; ValueError under "refuse"."""
         kind = {"none": "image", "e": "image+e", "e_r": "image+e_r"}.get(self.meta["conditioning"],
                                                                           "image+" + self.meta["conditioning"])
+        if self.meta["input"] == "marginals":
+            kind = "marginals+reference"
         name = Path(self.path).stem
         result = model_domain.check(model_domain.parse(self.meta["domain"]), self.sensor, name, kind)
         if result.reasons and policy == "refuse":
@@ -461,6 +485,8 @@ class ANN(Centroider):
     def centroid(self, data) -> np.ndarray:
         """As :meth:`Centroider.centroid` (bad rows go through the model as NaN/0, then NaN)."""
         raw = np.asarray(data)
+        if self.marginals:
+            return self._centroid_marginals(raw)
         rows = self.frame_rows(raw) if self.folded is not None and self._all_blocks else None
         if rows is not None:                            # a frame: every block in one pass
             x = rows if rows.dtype == np.float32 else rows.astype(np.float32)
@@ -473,6 +499,36 @@ class ANN(Centroider):
             out, total = self._run_stack(raw)
         ok = np.isfinite(total) & (total > 0)
         return self.finish(self._block_axes(out * self.meta["output_scale"]), ok)
+
+    def _centroid_marginals(self, raw: np.ndarray) -> np.ndarray:
+        """A marginals model: each block's column and row sums (one compiled pass over an
+        integer frame, added into the pupil calibration's sums as ``ml`` does; a refit
+        installs its references for this frame, as for ``cog`` with ``bias = pupil``); the
+        network on the column sums gives block x, the calibrated CoG of the row sums y."""
+        if kernels.fits(raw, self.sensor.frame_shape):
+            acc = self.pupil.marginal_buffer()
+            marg = kernels.block_marginals(raw, kernels.origins(self), self.p, acc)
+            refit = self.pupil.observed_marginals(acc is not None)
+        else:
+            flat = self.float_stack(raw).reshape(self.n, -1).astype(np.float64)
+            tot = flat.sum(axis=1)
+            good = np.isfinite(tot) & (tot > 0)
+            stack = np.where(good[:, None], flat, 0.0).reshape(self.n, self.p, self.p)
+            marg = np.stack([stack.sum(axis=1), stack.sum(axis=2)], axis=1).astype(np.float32)
+            marg[~good] = np.nan
+            refit = self.pupil.observe(flat, good)
+        if refit:
+            self.cond = (self.cond[0], self._reference_code())
+        x = np.ascontiguousarray(marg[:, 0])
+        out = self.session.run(None, {self.input_name: x, self.cond[0]: self.cond[1]})[0]
+        if out.shape != (self.n, 1):
+            raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 1)}")
+        total = marg[:, 1].sum(axis=1, dtype=np.float64)
+        ok = np.isfinite(total) & (total > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            y = marg[:, 1] @ (np.arange(self.p) - self.centre) / total - self._bias_y
+        out = np.stack([out[:, 0] * self.meta["output_scale"], y], axis=1)
+        return self.finish(out, ok)
 
     def _block_axes(self, out: np.ndarray) -> np.ndarray:
         """Model output ``(..., n, 2)`` in its ``output_frame`` -> block pixel axes."""

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..optics import geometry
 
-INPUT_KINDS = ("image", "image+e", "image+e_r", "image+reference")
+INPUT_KINDS = ("image", "image+e", "image+e_r", "image+reference", "marginals+reference")
 RADIUS_TOL_M = 1e-3           # float slack on the radius range (layout radii are rounded sums)
 ANGLE_TOL_DEG = 0.5
 

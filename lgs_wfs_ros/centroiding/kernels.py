@@ -11,6 +11,8 @@ in registers. Outside the pupil nothing is read.
   ``[R; 1]`` of ``(n, k, p*p)``), float32 weights times pixels summed in float64.
 - :func:`filter_flux`: as :func:`block_contract` for the CMF's ``R`` ``(n, 2, p*p)`` plus
   each block's pixel sum (the flux), 2/3 of the weight traffic of ``[R; 1]``.
+- :func:`block_marginals`: each valid block's row and column sums (the reference-reading
+  network's input on a polar detector, :mod:`.ann`).
 - :func:`ml_search`: the ML estimator's marginals, calibrated-CoG start and hill climb on
   its likelihood tables (:mod:`.ml`), one pass over each block.
 - :func:`invert_response`: the linearisation's per-subaperture inversion of a 2-D
@@ -248,6 +250,32 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
+def _block_marginals_impl(frame, origins, p, acc, out):
+    # out (n, 2, p) float32: [b, 0] the column sums (a function of block x), [b, 1] the row
+    # sums; acc (n, 2, p) float64, the calibration's sums of marginals (or a 0-row dummy)
+    n = origins.shape[0]
+    col = np.zeros(p, dtype=np.int32)               # at most p x 65535: fits (p <= 255)
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        for j in range(p):
+            col[j] = 0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            rs = np.int32(0)
+            for j in range(p):
+                v = np.int32(row[j])
+                rs += v
+                col[j] += v
+            out[b, 1, i] = rs
+        for j in range(p):
+            out[b, 0, j] = col[j]
+        if acc.shape[0] == n:
+            for j in range(p):
+                acc[b, 0, j] += out[b, 0, j]
+                acc[b, 1, j] += out[b, 1, j]
+
+
 def _ml_line_impl(mg, lg, j, base, tot_norm):
     # log-likelihood of one axis' marginals mg (p,) against the shift whose marginals are
     # columns base .. base + p - 1 of phase j of the phase table lg (S, W)
@@ -328,6 +356,7 @@ if AVAILABLE:
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
     _ml_search = numba.njit(cache=True, nogil=True)(_ml_search_impl)
+    _block_marginals = numba.njit(cache=True, nogil=True)(_block_marginals_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
@@ -403,6 +432,21 @@ def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m
     return s, jac
 
 
+def block_marginals(frame: np.ndarray, origins: np.ndarray, p: int,
+                    acc: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 2, p)`` float32 marginals of each valid block: ``[:, 0]`` the column sums (a
+    function of block x), ``[:, 1]`` the row sums (of block y); exact integers (at most
+    ``p`` x 65535 < 2^24). ``acc`` ``(n, 2, p)`` float64, if given, gets them added (the
+    pupil calibration's sums, :meth:`.pupil.PupilCalibration.marginal_buffer`)."""
+    if not 0 < p <= 255:
+        raise ValueError(f"block_marginals: p must be 1 to 255, got {p}")
+    n = origins.shape[0]
+    if out is None:
+        out = np.empty((n, 2, p), dtype=np.float32)
+    _block_marginals(frame, origins, int(p), np.empty((0, 2, p)) if acc is None else acc, out)
+    return out
+
+
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
               norms: np.ndarray, bias: np.ndarray, margin: int,
               acc: np.ndarray | None = None) -> np.ndarray:
@@ -433,7 +477,7 @@ _warm = False
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) both kernels now, once per process, so the first
+    """Compile (or load from numba's cache) the kernels now, once per process, so the first
     frame of a running graph does not pay for it (~0.5 s)."""
     global _warm
     if _warm or not AVAILABLE:
@@ -446,4 +490,6 @@ def warm_up() -> None:
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     ml_search(frame, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
               np.zeros((1, 2)), 2)
+    block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
+    block_marginals(frame, o, 4)
     _warm = True

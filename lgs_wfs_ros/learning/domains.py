@@ -39,6 +39,9 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     ``training`` metadata, when given, supplies the sensor)."""
     if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
         return reference_domain(rec)
+    if rec.conditioning == "marginals":          # ann_marg: the same ranges, polar only
+        from .margtrain import domain
+        return domain()
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)

@@ -86,6 +86,18 @@ class Recipe:
 
     def line(self, samples: int | None = None) -> str:
         """The one-line recipe printed by ``lgs-wfs train``."""
+        if self.conditioning == "marginals":
+            from .refdata import MARGINAL_SPEC as pr
+            return (f"{self.name}: MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's "
+                    f"column sums (along e): (sums / total - reference's, reference's, "
+                    f"log10 total); {samples or self.samples} spots of the "
+                    f"{pr.describe()}; references stale (layers moved {pr.stale_shift_m:g} m rms, "
+                    f"stretched {pr.stale_stretch:.0%}) and seen through the pupil "
+                    f"calibration's node basis ({pr.node_noise:.0%} node noise); "
+                    f"r {pr.radius_m[0]:g}-{pr.radius_m[1]:g} m, "
+                    f"{pr.photons[0]:g}-{pr.photons[1]:g} photons (log-uniform), positions "
+                    f"N(0, {pr.sigma_px:g} px); Adam lr {self.lr:g} cosine, batch {self.batch}, "
+                    f"{self.epochs} epochs, loss {self.loss}, seed {self.seed}")
         if self.conditioning == "reference":
             from .refdata import PriorSpec
             pr = PriorSpec()
@@ -155,6 +167,16 @@ RECIPES["ann_ref"] = Recipe(
     samples=80_000, quick_samples=8_000, epochs=40, batch=256, lr=2e-3, loss="euclid", seed=15,
     note="reads the image and its reference from the pupil calibration (image - reference, "
          "reference): every radius to 35 m, both detectors, 100-3000 photons")
+
+# The marginal reference-reading network (learning/margtrain.py): on a polar detector a spot
+# is the outer product of its marginals; one small network reads one axis' marginal and the
+# reference's, for both axes of every subaperture.
+RECIPES["ann_marg"] = Recipe(
+    "ann_marg", "polar", pupil=True, sizes=(33, 64, 64, 1), conditioning="marginals",
+    samples=800_000, quick_samples=20_000, epochs=40, batch=512, lr=2e-3, loss="mse", seed=16,
+    detectors=("polar",),
+    note="polar: the column sums (along e) and the reference's from the pupil calibration; "
+         "every radius to 35 m, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they
