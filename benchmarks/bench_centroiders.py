@@ -128,9 +128,12 @@ def run(quick: bool = False) -> list[dict]:
     pframe, _ = _frame(polar)
     for label, name, opts in (("cog (polar detector)", "cog", {}),
                               ("ml (polar detector, per-frame part)", "ml",
-                               {"pupil_period": 1000000})):
+                               {"pupil_period": 1000000}),
+                              ("ann ann_marg (polar detector, per-frame part)", "ann",
+                               {"model": "ann_marg", "pupil_period": 1000000})):
         c = make_centroider(name, polar, **opts)
-        timings[label] = add(label, _time(lambda: c.centroid(pframe), reps), "< 1 ms" if name == "ml" else "",
+        timings[label] = add(label, _time(lambda: c.centroid(pframe), reps),
+                             "" if name == "cog" else "< 1 ms",
                              note=f"uint16 frame in, {n} subapertures")
 
     with tempfile.TemporaryDirectory() as tmp:

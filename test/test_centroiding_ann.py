@@ -159,9 +159,13 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # the default model (ann_ref) ships with the package, so it resolves by name ...
+    # the default models (ann_marg polar, ann_ref cartesian) ship with the package, so
+    # they resolve by name ...
     from lgs_wfs_ros.centroiding import ann
-    assert resolve_model(ann.DEFAULT_MODEL) == ann.model_dirs()[0] / "ann_ref.onnx"
+    assert ann.DEFAULT_MODELS == {"polar": "ann_marg", "cartesian": "ann_ref"}
+    for name in ann.DEFAULT_MODELS.values():
+        assert resolve_model(name) == ann.model_dirs()[0] / f"{name}.onnx"
+    assert make_centroider("ann", Sensor(detector="polar")).model_name == "ann_marg"
     # ... and where no directory holds it, the error says so (both paths always run)
     monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
     with pytest.raises(ValueError, match="'ann_ref' not found"):

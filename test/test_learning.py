@@ -196,7 +196,8 @@ def test_export_rejects_bad_layers():
 
 
 def test_recipes_are_complete():
-    assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil", "ann_ref"}
+    assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil", "ann_ref",
+                                    "ann_marg"}
     assert n_parameters(recipes.PAPER_SIZES) == 4146
     for name in recipes.SHIPPED:
         r = recipes.get(name)

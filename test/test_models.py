@@ -13,8 +13,9 @@ MODELS = Path(__file__).resolve().parents[1] / "models"
 #: every shipped recipe: a missing model file fails these tests, it never skips them
 SHIPPED = list(recipes.SHIPPED)
 #: the networks that read pixels alone (ann_ref reads a reference too: its own tests below)
-IMAGE_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning != "reference"]
+IMAGE_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning not in ("reference", "marginals")]
 REFERENCE_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning == "reference"]
+MARGINAL_MODELS = [n for n in SHIPPED if recipes.get(n).conditioning == "marginals"]
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -88,6 +89,22 @@ def test_reference_model_contract_and_check_error(name):
     assert ins == {"pixels": ["batch", 256], "reference": ["batch", 256]}
     check = meta["lgs_wfs.training"]["check"]
     got = reftrain.check_error(path, check["n"], check["seed"])
+    assert got == pytest.approx(check["mean_err_px"], rel=1e-4)
+
+
+@pytest.mark.parametrize("name", MARGINAL_MODELS)
+def test_marginal_model_contract_and_check_error(name):
+    """ann_marg: column sums and reference inputs (16 each), one output, polar, the
+    marginal domain, and the recorded check error reproduced on the same fresh spots."""
+    from lgs_wfs_ros.learning import margtrain
+    path = MODELS / f"{name}.onnx"
+    meta = export.read_metadata(path)
+    assert meta["lgs_wfs.input"] == "marginals" and meta["lgs_wfs.detector"] == "polar"
+    assert meta["lgs_wfs.domain"] == margtrain.domain()
+    ins = {i.name: i.shape for i in export.session(path).get_inputs()}
+    assert ins == {"marginals": ["batch", 16], "reference": ["batch", 16]}
+    check = meta["lgs_wfs.training"]["check"]
+    got = margtrain.check_error(path, check["n"], check["seed"])
     assert got == pytest.approx(check["mean_err_px"], rel=1e-4)
 
 

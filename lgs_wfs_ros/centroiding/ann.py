@@ -66,7 +66,10 @@ from . import kernels
 from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
-DEFAULT_MODEL = "ann_ref"   # reads the pupil-calibrated reference (docs/ann_ref.md)
+#: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
+#: reference; on a polar detector ann_marg (the column sums along e) is the more accurate
+DEFAULT_MODELS = {"polar": "ann_marg", "cartesian": "ann_ref"}
+DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
 
@@ -312,7 +315,8 @@ class ANN(Centroider):
     """Neural-network centroider.
 
     Options:
-        model: path or name (default "ann_ref"), see :func:`resolve_model`.
+        model: path or name (default: :data:`DEFAULT_MODELS` of the sensor's detector,
+            ``ann_marg`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.
@@ -326,7 +330,7 @@ class ANN(Centroider):
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
-        options.setdefault("model", DEFAULT_MODEL)
+        options.setdefault("model", DEFAULT_MODELS.get(sensor.detector, DEFAULT_MODEL))
         options.setdefault("out_of_domain", "refuse")
         if options["out_of_domain"] not in ("refuse", "warn"):
             raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
