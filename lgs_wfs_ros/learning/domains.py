@@ -40,8 +40,7 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
         return reference_domain(rec)
     if rec.conditioning == "marginals":          # ann_marg: the same ranges, polar only
-        from .margtrain import domain
-        return domain()
+        return marginal_domain()
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)
@@ -67,6 +66,11 @@ def reference_domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.Pri
             "input": "image+reference",
             "reference": "the spot of the sodium profile estimated by the pupil calibration "
                          "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}
+
+
+def marginal_domain(prior: refdata.PriorSpec = refdata.MARGINAL_SPEC) -> dict:
+    """The domain of the marginal network (``ann_marg``): its spots' ranges, polar only."""
+    return {**reference_domain(None, prior), "detector": ["polar"], "input": "marginals+reference"}
 
 
 def stamp(path) -> dict:

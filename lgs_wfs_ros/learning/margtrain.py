@@ -131,10 +131,7 @@ def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED) -> floa
     return float(np.abs(predict(path_or_model, pairs) - pairs.y).mean())
 
 
-def domain(prior: refdata.PriorSpec = refdata.MARGINAL_SPEC) -> dict:
-    """The training domain: the ranges the spots were drawn from, polar only."""
-    return {**domains.reference_domain(None, prior), "detector": ["polar"],
-            "input": "marginals+reference"}
+domain = domains.marginal_domain      # the training domain: the spots' ranges, polar only
 
 
 def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: int,

@@ -172,7 +172,7 @@ RECIPES["ann_ref"] = Recipe(
 # is the outer product of its marginals; one small network reads one axis' marginal and the
 # reference's, for both axes of every subaperture.
 RECIPES["ann_marg"] = Recipe(
-    "ann_marg", "polar", pupil=True, sizes=(33, 64, 64, 1), conditioning="marginals",
+    "ann_marg", "polar", pupil=True, sizes=(33, 48, 48, 1), conditioning="marginals",
     samples=800_000, quick_samples=20_000, epochs=40, batch=512, lr=2e-3, loss="mse", seed=16,
     detectors=("polar",),
     note="polar: the column sums (along e) and the reference's from the pupil calibration; "
