@@ -425,12 +425,48 @@ def rows(res: dict) -> list[dict]:
     return rows
 
 
+def family_summary(cases, label: str) -> dict:
+    """Per family: mean ratio of ``label``'s error to the CRB and to cog over its cases."""
+    out = {}
+    for c in cases:
+        for ph, row in c["photons"].items():
+            if label not in row:
+                continue
+            d = out.setdefault(c["family"], {"ratio_crb": [], "ratio_cog": []})
+            d["ratio_crb"].append(row[label]["ratio_crb"])
+            d["ratio_cog"].append(row[label]["ratio_cog"])
+    return {f: {k: round(float(np.mean(v)), 3) for k, v in d.items()} | {"cases": len(d["ratio_crb"])}
+            for f, d in out.items()}
+
+
+def record(label: str, model: str, res: dict) -> None:
+    """Write ``label``'s per-family summary of ``res`` into model ``model``'s
+    ``lgs_wfs.training["accuracy"]`` and rewrite its directory's card (learning/card.py)."""
+    from lgs_wfs_ros.centroiding.ann import resolve_model
+    from lgs_wfs_ros.learning import card, export
+    path = resolve_model(model)
+    tr = export.read_metadata(path).get("lgs_wfs.training", {})
+    tr["accuracy"] = {"what": f"bench_accuracy.run_case ({res['mode']}), label {label}",
+                      "per_family": family_summary(res["cases"], label),
+                      "cpu_ms_per_frame": {c["family"] + "/" + c["detector"] + f"/{c['launch_m']:g}":
+                                           round(c["cpu_ms"][label]["per_frame"], 2)
+                                           for c in res["cases"] if label in c["cpu_ms"]}}
+    export.update_metadata(path, {"lgs_wfs.training": tr})
+    card.write(path.parent)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames and cases (minutes)")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
+    ap.add_argument("--record", default="", metavar="LABEL",
+                    help="with --tables-only: write LABEL's (an ann estimator's) per-family "
+                         "summary into its model's metadata and the model card")
     args = ap.parse_args()
+    if args.record:
+        res = json.loads((HERE / "accuracy.json").read_text())
+        record(args.record, ESTIMATORS[args.record][1]["model"], res)
     if args.tables_only:
         res = json.loads((HERE / "accuracy.json").read_text())
         (HERE / "accuracy.md").write_text(markdown(res))

@@ -45,16 +45,7 @@ def table(cases) -> str:
 
 def summary(cases) -> dict:
     """Per family: mean ratio of ann_ref to the CRB and to cog over its cases."""
-    out = {}
-    for c in cases:
-        for ph, row in c["photons"].items():
-            if "ann_ref" not in row:
-                continue
-            d = out.setdefault(c["family"], {"ratio_crb": [], "ratio_cog": []})
-            d["ratio_crb"].append(row["ann_ref"]["ratio_crb"])
-            d["ratio_cog"].append(row["ann_ref"]["ratio_cog"])
-    return {f: {k: round(float(np.mean(v)), 3) for k, v in d.items()} | {"cases": len(d["ratio_crb"])}
-            for f, d in out.items()}
+    return acc.family_summary(cases, "ann_ref")
 
 
 PAPER_T12 = {"polar": 0.249, "cartesian": 0.224}     # the paper's ANN / CoG, Tables 1-2 (text)

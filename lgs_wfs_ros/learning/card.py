@@ -131,8 +131,8 @@ def accuracy_text(model_dir) -> str:
         if not acc:
             continue
         if not lines:
-            lines = ["## Accuracy on the unseen families (accuracy benchmark)", "",
-                     "| model | family | cases | error / CRB | error / cog |", "|---|---|---|---|---|"]
+            lines = ["## Accuracy on the unseen families (accuracy benchmark)", ""]
+        lines += ["| model | family | cases | error / CRB | error / cog |", "|---|---|---|---|---|"]
         for fam, v in acc["per_family"].items():
             lines.append(f"| `{name}` | {fam} | {v['cases']} | {v['ratio_crb']:.2f} | {v['ratio_cog']:.2f} |")
         lines += ["", f"`{name}`: {acc['what']}; mean over the family's cases (detectors, launches, "
