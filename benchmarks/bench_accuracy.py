@@ -435,8 +435,8 @@ def family_summary(cases, label: str) -> dict:
             d = out.setdefault(c["family"], {"ratio_crb": [], "ratio_cog": []})
             d["ratio_crb"].append(row[label]["ratio_crb"])
             d["ratio_cog"].append(row[label]["ratio_cog"])
-    return {f: {k: round(float(np.mean(v)), 3) for k, v in d.items()} | {"cases": len(d["ratio_crb"])}
-            for f, d in out.items()}
+    return {f: {k: round(float(np.mean(v)), 3) for k, v in d.items()}
+            | {"cases": len(d["ratio_crb"])} for f, d in out.items()}
 
 
 def record(label: str, model: str, res: dict) -> None:
@@ -448,7 +448,7 @@ def record(label: str, model: str, res: dict) -> None:
     tr = export.read_metadata(path).get("lgs_wfs.training", {})
     tr["accuracy"] = {"what": f"bench_accuracy.run_case ({res['mode']}), label {label}",
                       "per_family": family_summary(res["cases"], label),
-                      "cpu_ms_per_frame": {c["family"] + "/" + c["detector"] + f"/{c['launch_m']:g}":
+                      "cpu_ms_per_frame": {f"{c['family']}/{c['detector']}/{c['launch_m']:g}":
                                            round(c["cpu_ms"][label]["per_frame"], 2)
                                            for c in res["cases"] if label in c["cpu_ms"]}}
     export.update_metadata(path, {"lgs_wfs.training": tr})

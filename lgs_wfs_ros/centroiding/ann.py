@@ -148,8 +148,9 @@ def read_metadata(meta_map: dict) -> dict:
                 raw[k[len(META):]] = json.loads(v)
             except (json.JSONDecodeError, TypeError):
                 raw[k[len(META):]] = v
-    md = {"detector": "any", "input": "pixels", "input_norm": "sum", "output_scale": 1.0, "output_frame": "detector",
-          "conditioning": "none", "conditioning_input": "e", "conditioning_frame": "detector",
+    md = {"detector": "any", "input": "pixels", "input_norm": "sum", "output_scale": 1.0,
+          "output_frame": "detector", "conditioning": "none", "conditioning_input": "e",
+          "conditioning_frame": "detector",
           "input_name": None, "training": None, "domain": None}
     md.update(raw)
     if "pixels" not in raw:
@@ -169,7 +170,8 @@ def read_metadata(meta_map: dict) -> dict:
         raise ValueError(f"ann: bad metadata lgs_wfs.pixels/output_scale: {exc}") from exc
     if not np.isfinite(md["output_scale"]):
         raise ValueError("ann: metadata lgs_wfs.output_scale must be finite")
-    if md["input"] == "marginals" and (md["detector"] != "polar" or md["conditioning"] != "reference"):
+    if md["input"] == "marginals" and (md["detector"] != "polar"
+                                       or md["conditioning"] != "reference"):
         raise ValueError("ann: a marginals model must declare lgs_wfs.detector polar and "
                          "lgs_wfs.conditioning reference")
     return md
@@ -395,7 +397,8 @@ class ANN(Centroider):
             rows = ref.sum(axis=2)
             tot = rows.sum(axis=1)
             with np.errstate(divide="ignore", invalid="ignore"):
-                self._bias_y = np.where(tot > 0, rows @ (np.arange(self.p) - self.centre) / tot, 0.0)
+                moment = rows @ (np.arange(self.p) - self.centre)
+                self._bias_y = np.where(tot > 0, moment / tot, 0.0)
             ref = ref.sum(axis=1)
         ref = ref.reshape(self.n, -1)
         tot = ref.sum(axis=1, keepdims=True)

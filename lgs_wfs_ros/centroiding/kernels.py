@@ -250,30 +250,36 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
+def _block_sums_impl(frame, r0, c0, p, col, dst, acc, b):
+    # dst (2, p): [0] the column sums of the block at (r0, c0) (a function of block x), [1]
+    # its row sums; added into acc[b] when acc has a row per block (the calibration's sums);
+    # returns the block's total. col: an int32 (p,) scratch (at most p x 65535: p <= 255)
+    for j in range(p):
+        col[j] = 0
+    tot = 0
+    for i in range(p):
+        row = frame[r0 + i, c0:c0 + p]
+        rs = np.int32(0)
+        for j in range(p):
+            v = np.int32(row[j])
+            rs += v
+            col[j] += v
+        dst[1, i] = rs
+        tot += rs
+    for j in range(p):
+        dst[0, j] = col[j]
+    if b < acc.shape[0]:
+        for j in range(p):
+            acc[b, 0, j] += dst[0, j]
+            acc[b, 1, j] += dst[1, j]
+    return tot
+
+
 def _block_marginals_impl(frame, origins, p, acc, out):
-    # out (n, 2, p) float32: [b, 0] the column sums (a function of block x), [b, 1] the row
-    # sums; acc (n, 2, p) float64, the calibration's sums of marginals (or a 0-row dummy)
-    n = origins.shape[0]
-    col = np.zeros(p, dtype=np.int32)               # at most p x 65535: fits (p <= 255)
-    for b in range(n):
-        r0 = origins[b, 0]
-        c0 = origins[b, 1]
-        for j in range(p):
-            col[j] = 0
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
-            for j in range(p):
-                v = np.int32(row[j])
-                rs += v
-                col[j] += v
-            out[b, 1, i] = rs
-        for j in range(p):
-            out[b, 0, j] = col[j]
-        if acc.shape[0] == n:
-            for j in range(p):
-                acc[b, 0, j] += out[b, 0, j]
-                acc[b, 1, j] += out[b, 1, j]
+    # out (n, 2, p) float32; acc (n, 2, p) float64 or a 0-row dummy
+    col = np.zeros(p, dtype=np.int32)
+    for b in range(origins.shape[0]):
+        _block_sums(frame, origins[b, 0], origins[b, 1], p, col, out[b], acc, b)
 
 
 def _ml_line_impl(mg, lg, j, base, tot_norm):
@@ -294,29 +300,10 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
     kk = norms.shape[2]
     m = (kk - 1) // 2
     c = (p - 1) / 2.0
-    col = np.zeros(p, dtype=np.int32)               # at most p x 65535: fits (p <= 255)
+    col = np.zeros(p, dtype=np.int32)
     marg = np.empty((2, p), dtype=np.float32)
-    for b in range(n):
-        r0 = origins[b, 0]
-        c0 = origins[b, 1]
-        for j in range(p):
-            col[j] = 0
-        tot = 0.0
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
-            for j in range(p):
-                v = np.int32(row[j])
-                rs += v
-                col[j] += v
-            marg[1, i] = rs
-            tot += rs
-        for j in range(p):
-            marg[0, j] = col[j]
-        if acc.shape[0] == n:                       # the calibration's sums of marginals
-            for j in range(p):
-                acc[b, 0, j] += marg[0, j]
-                acc[b, 1, j] += marg[1, j]
+    for b in range(n):                              # marginals (and the calibration's sums)
+        tot = np.float64(_block_sums(frame, origins[b, 0], origins[b, 1], p, col, marg, acc, b))
         if not tot > 0:
             out[b, 0] = np.nan
             out[b, 1] = np.nan
@@ -355,6 +342,7 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
 if AVAILABLE:
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
+    _block_sums = numba.njit(cache=True, nogil=True, inline="always")(_block_sums_impl)
     _ml_search = numba.njit(cache=True, nogil=True)(_ml_search_impl)
     _block_marginals = numba.njit(cache=True, nogil=True)(_block_marginals_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;

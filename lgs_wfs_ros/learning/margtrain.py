@@ -119,7 +119,8 @@ def build_model(layers, pixels: int, metadata: dict, name: str = "ann_marg"):
 
 def predict(path_or_model, pairs: refdata.MarginalPairs) -> np.ndarray:
     """``(n, 1)`` model outputs (px along e) on marginal pairs."""
-    src = path_or_model if isinstance(path_or_model, (str, Path)) else path_or_model.SerializeToString()
+    src = (path_or_model if isinstance(path_or_model, (str, Path))
+           else path_or_model.SerializeToString())
     sess = export.session(src)
     return np.asarray(sess.run([SHIFT_OUTPUT], {MARG_INPUT: pairs.marg, REF_INPUT: pairs.refs})[0],
                       dtype=np.float64)
