@@ -73,7 +73,6 @@ class PlaySchedule:
         self._mode = None            # the rate the anchor was taken at (None: recorded)
         self._anchor = None          # (clock s, frames sent before it, bag ns before it)
         self.sent = 0                # frames scheduled so far
-        self._bag_ns = 0             # recorded time elapsed at the last frame, ns
 
     def due(self, rate: float | None, elapsed_ns: int) -> float | None:
         """The clock time the next frame is due (None: now, ``rate`` 0 is 'max').
