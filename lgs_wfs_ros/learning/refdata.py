@@ -174,9 +174,9 @@ class MarginalPairs:
 
 
 #: the marginal network's prior: shifts N(0, 1 px) (not the pixel networks' 0.6: a reference
-#: reader should not learn to pull large shifts in), references as stale as the calibration
-#: leaves them at its default period (ml, which takes them as exact, is at 1.00-1.08x the
-#: Cramer-Rao bound on unseen profiles: the calibration's references are close)
+#: reader should not learn to pull large shifts in), references perturbed less than
+#: ann_ref's (50 m, 2 %, 2 % node noise: ml, which takes the calibration's references as
+#: exact, is at 1.00-1.08x the Cramer-Rao bound on unseen profiles, so they are close)
 MARGINAL_SPEC = PriorSpec(sigma_px=1.0, stale_shift_m=50.0, stale_stretch=0.02, node_noise=0.02)
 
 
