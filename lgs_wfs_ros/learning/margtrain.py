@@ -172,25 +172,11 @@ def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: in
     return {"path": str(path), "training": training, "history": hist}
 
 
-def train_recipe(name: str, out_dir=None, samples: int | None = None, seed: int | None = None,
-                 quick: bool = False, force: bool = False, progress: bool = True,
-                 time_budget_s: float | None = None, **_ignored) -> dict:
-    """``lgs-wfs train`` for the marginal recipe: as :func:`.reftrain.train_recipe`."""
-    from . import card
-    from .train import target_path
-    target = target_path(name, out_dir, force)
-    rec = recipes.get(name)
-    seed = rec.seed if seed is None else int(seed)
-    samples = (rec.quick_samples if quick else rec.samples) if samples is None else int(samples)
-    epochs = max(2, rec.epochs // 8) if quick else rec.epochs
-    t0 = time.perf_counter()
-    print("recipe:", rec.line(samples), flush=True)
-    done = train(rec, target, samples, seed, epochs, progress, time_budget_s)
-    done["training"]["quick"] = quick
-    export.update_metadata(target, {"lgs_wfs.training": done["training"]})
-    return {"path": done["path"], "recipe": rec.line(samples), "history": done["history"],
-            "check_err_px": done["training"]["check"]["mean_err_px"], "validation": None,
-            "seconds": time.perf_counter() - t0, "card": str(card.write(target.parent))}
+def train_recipe(name: str, **kwargs) -> dict:
+    """``lgs-wfs train`` for the marginal recipe: :func:`.reftrain.train_recipe` with this
+    module's :func:`train`."""
+    from .reftrain import train_recipe as _train_recipe
+    return _train_recipe(name, trainer=train, **kwargs)
 
 
 __all__ = ["train_recipe", "train", "build_model", "features", "generate", "predict", "domain"]

@@ -144,11 +144,20 @@ def _unit(a: np.ndarray) -> np.ndarray:
 def pairs(rng: np.random.Generator, n: int, spec: PriorSpec = PriorSpec(),
           sensor: Sensor = Sensor()) -> Pairs:
     """Draw ``n`` training pairs (see the module doc)."""
-    render = sensor.replace(detector="cartesian")
     r = rng.uniform(*spec.radius_m, size=n)
     ang = rng.uniform(0.0, 2 * math.pi, size=n)
     e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     e[rng.random(n) < spec.polar_fraction] = (1.0, 0.0)
+    t, ref, ph, counts = _spots(rng, spec, sensor, r, e)
+    return Pairs(_unit(counts), _unit(ref), t.astype(np.float32), r, e, ph)
+
+
+def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray) -> tuple:
+    """The draws after the geometry (``r (n,)`` m, ``e (n, 2)`` pixel axes): ``(t (n, 2)``
+    shifts px, ``ref (n, p, p)`` the stale references at zero shift, ``ph (n,)`` photons,
+    ``counts (n, p, p)`` the noisy images``)``, rendered as cartesian spots along ``e``."""
+    n = r.size
+    render = sensor.replace(detector="cartesian")
     t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
     rho = broad_profiles(rng, n, spec)
     img, _ = SpotModel(render, r, e, GRID, rho, max_shift_px=2.4).images(t)
@@ -157,7 +166,7 @@ def pairs(rng: np.random.Generator, n: int, spec: PriorSpec = PriorSpec(),
     ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
     counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
                     True, "float32")
-    return Pairs(_unit(counts), _unit(np.clip(ref, 0.0, None)), t.astype(np.float32), r, e, ph)
+    return t, np.clip(ref, 0.0, None), ph, counts
 
 
 @dataclass
@@ -186,18 +195,9 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     """Draw ``n`` polar spots (elongation along block x) as :class:`MarginalPairs`: the
     prior, geometry and noise of :func:`pairs` (with ``spec``), each image and reference
     reduced to its column sums (a polar spot is the outer product of its marginals)."""
-    render = sensor.replace(detector="cartesian")
     r = rng.uniform(*spec.radius_m, size=n)
-    e = np.tile([1.0, 0.0], (n, 1))
-    t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
-    rho = broad_profiles(rng, n, spec)
-    img, _ = SpotModel(render, r, e, GRID, rho, max_shift_px=2.4).images(t)
-    ref_rho = calibrated(rng, rho, spec, sensor)
-    ref, _ = SpotModel(render, r, e, GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
-    ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
-    counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
-                    True, "float32")
-    refm = np.clip(ref, 0.0, None).sum(axis=1)
+    t, ref, ph, counts = _spots(rng, spec, sensor, r, np.tile([1.0, 0.0], (n, 1)))
+    refm = ref.sum(axis=1)
     tot = refm.sum(axis=1, keepdims=True)
     return MarginalPairs(counts.sum(axis=1).astype(np.float32),
                          (refm / np.where(tot > 0, tot, np.inf)).astype(np.float32),

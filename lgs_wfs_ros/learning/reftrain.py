@@ -148,9 +148,10 @@ def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: in
 
 def train_recipe(name: str, out_dir=None, samples: int | None = None, seed: int | None = None,
                  quick: bool = False, force: bool = False, progress: bool = True,
-                 time_budget_s: float | None = None, **_ignored) -> dict:
+                 time_budget_s: float | None = None, trainer=None, **_ignored) -> dict:
     """``lgs-wfs train`` for a reference recipe: as :func:`.train.train_model` (same
-    return keys), then the card of ``out_dir``."""
+    return keys), then the card of ``out_dir``. ``trainer``: the recipe's :func:`train`
+    (default this module's; :mod:`.margtrain` passes its own)."""
     from . import card
     from .train import target_path
     target = target_path(name, out_dir, force)
@@ -160,7 +161,7 @@ def train_recipe(name: str, out_dir=None, samples: int | None = None, seed: int 
     epochs = max(2, rec.epochs // 8) if quick else rec.epochs
     t0 = time.perf_counter()
     print("recipe:", rec.line(samples), flush=True)
-    done = train(rec, target, samples, seed, epochs, progress, time_budget_s)
+    done = (trainer or train)(rec, target, samples, seed, epochs, progress, time_budget_s)
     done["training"]["quick"] = quick
     export.update_metadata(target, {"lgs_wfs.training": done["training"]})
     return {"path": done["path"], "recipe": rec.line(samples), "history": done["history"],
