@@ -115,6 +115,11 @@ def test_simulator_takes_an_integer_photons_at_start_and_at_run_time(ros):
     res = set_param(ros, "/wfs/simulator_node", "photons", 250)
     assert res.successful, res.reason
     assert sim.sim.sensor.photons == 250.0
+    assert sim.sim.threads == 2                     # render_threads' default
+    assert not set_param(ros, "/wfs/simulator_node", "render_threads", 0).successful
+    res = set_param(ros, "/wfs/simulator_node", "render_threads", 1)
+    assert res.successful, res.reason
+    assert sim.sim.threads == 1 and sim.sim.sensor.photons == 250.0
     sim.stop()
 
 

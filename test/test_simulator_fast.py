@@ -4,7 +4,7 @@ statistically today's; profiles are a function of the frame index alone."""
 import numpy as np
 import pytest
 
-from lgs_wfs_ros.optics import detector
+from lgs_wfs_ros.optics import detector, fast_frames
 from lgs_wfs_ros.optics.simulator import SimulationConfig, Simulator
 from lgs_wfs_ros.sensor import Sensor
 
@@ -210,9 +210,10 @@ def test_poisson_tables_are_the_exact_cdf():
 
 @pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
 def test_fused_polar_draws_are_the_samplers_in_batches():
-    """Full pupil (many draw batches): the fused kernel's noisy float64 frame is exactly
-    the sampler run once over the lit rows' expected counts in block order (the batches
-    carry the generator's state: none restarts or skips a draw), and it is reproducible."""
+    """Full pupil (many draw batches): the fused kernel's noisy float64 frame is exactly,
+    chunk by chunk, the sampler run once over the chunk's lit rows' expected counts in
+    block order from the chunk's own seed (the batches carry the generator's state: none
+    restarts or skips a draw), and it is reproducible."""
     s = Sensor(detector="polar", dtype="float32")
     sim = Simulator(s, SimulationConfig(profile="uncentred", seed=4), fast=True)
     r, p, seed = sim._renderer, s.pixels, 12345
@@ -226,18 +227,58 @@ def test_fused_polar_draws_are_the_samplers_in_batches():
     r.render(model, truth, a, s.photons, seed)
     r.render(model, truth, b, s.photons, seed)
     np.testing.assert_array_equal(a, b)
-    rows = []
-    for br, bc in zip(r.rows, r.cols):
-        blk = expect[br * p:(br + 1) * p, bc * p:(bc + 1) * p]
-        rows += [(br * p + j, bc * p) for j in range(p) if blk[j].max() > detector.POISSON_FLOOR]
-    lam = np.concatenate([expect[i, j:j + p] for i, j in rows])
-    assert lam.size > 3 * 8192                                # several batches
-    out = np.empty(lam.size, np.int64)
-    detector._poisson_fast(lam, detector.POISSON_FLOOR, seed, out)
     ref = np.zeros(s.frame_shape)
-    for n, (i, j) in enumerate(rows):
-        ref[i, j:j + p] = out[n * p:(n + 1) * p]
+    seeds = fast_frames.chunk_seeds(seed, r.CHUNKS)
+    assert len(set(seeds)) == r.CHUNKS and len(r._ranges) == r.CHUNKS
+    for (b0, b1), chunk_seed in zip(r._ranges, seeds):
+        rows = []
+        for br, bc in zip(r.rows[b0:b1], r.cols[b0:b1]):
+            blk = expect[br * p:(br + 1) * p, bc * p:(bc + 1) * p]
+            rows += [(br * p + j, bc * p) for j in range(p)
+                     if blk[j].max() > detector.POISSON_FLOOR]
+        lam = np.concatenate([expect[i, j:j + p] for i, j in rows])
+        assert lam.size > 2 * 8192                            # several batches a chunk
+        out = np.empty(lam.size, np.int64)
+        detector._poisson_fast(lam, detector.POISSON_FLOOR, chunk_seed, out)
+        for n, (i, j) in enumerate(rows):
+            ref[i, j:j + p] = out[n * p:(n + 1) * p]
     np.testing.assert_array_equal(a, ref)
+
+
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+@pytest.mark.parametrize("detector_kind", ["polar", "cartesian"])
+def test_render_threads_give_the_same_frames(detector_kind):
+    """A frame rendered by 2 or 4 threads (its chunks in parallel) is the one rendered by
+    one thread: the draws follow the chunks, not the threads; the evolving profile's
+    blended knots included."""
+    s = Sensor(detector=detector_kind)
+    cfg = SimulationConfig(profile="evolving", seed=6)
+    n = 3 if detector_kind == "polar" else 2
+    frames = {}
+    for threads in (1, 2, 4):
+        sim = Simulator(s, cfg, fast=True, threads=threads)
+        try:
+            sim.index = 150                              # between two knots: a blend
+            frames[threads] = [sim.next().frame.copy() for _ in range(n)]
+        finally:
+            sim.close()
+    for threads in (2, 4):
+        for f1, ft in zip(frames[1], frames[threads]):
+            np.testing.assert_array_equal(ft, f1)
+    assert frames[1][0].sum() > 0 and not np.array_equal(frames[1][0], frames[1][1])
+
+
+def test_render_threads_are_checked():
+    with pytest.raises(ValueError, match="threads must be an integer >= 1"):
+        Simulator(Sensor(detector="polar"), SimulationConfig(profile="uncentred"), fast=True,
+                  threads=0)
+
+
+def test_chunk_seeds_are_distinct_and_a_function_of_the_seed():
+    a = fast_frames.chunk_seeds(7, 4)
+    assert a == fast_frames.chunk_seeds(7, 4) and len(set(a)) == 4
+    assert all(0 <= v < 2**63 for v in a)
+    assert set(a).isdisjoint(fast_frames.chunk_seeds(8, 4))
 
 
 @pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 
 import numpy as np
@@ -204,12 +205,12 @@ def _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d, last):
     return x, d, nl, 0
 
 
-def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, zrows,
-                  zcols, photons, per_field, noise, integer, seed, frame, trunc):
-    """Compiled: every valid block of ``frame`` (rows local y, columns local x) from the
-    line tables (``(1 - wb) lines + wb lines2``: two profiles' unit-light lines blended) and
-    the core, Poisson-drawn (or expected counts if not ``noise``); the blocks ``(zrows,
-    zcols)`` outside the pupil are zeroed. Returns saturated pixels."""
+def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols, b0, b1,
+                  photons, per_field, noise, integer, seed, frame, trunc):
+    """Compiled: the valid blocks ``b0 <= i < b1`` of ``frame`` (rows local y, columns
+    local x) from the line tables (``(1 - wb) lines + wb lines2``: two profiles' unit-light
+    lines blended) and the core, Poisson-drawn from ``seed``'s stream (or expected counts if
+    not ``noise``). Returns saturated pixels. Disjoint block ranges may run in parallel."""
     x = detector._seed_state(seed)
     cum = np.empty(p + 1)
     cum2 = np.empty(p + 1)
@@ -221,7 +222,7 @@ def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols,
     d = -1.0                                    # the small-mean process: not started
     sat = 0
     half = p / 2.0
-    for i in range(rows.size):
+    for i in range(b0, b1):
         _hermite_lines(lines[i], -H * half - d0 - H * s_maj[i], p + 1, cum)
         if wb > 0.0:
             _hermite_lines(lines2[i], -H * half - d0 - H * s_maj[i], p + 1, cum2)
@@ -252,7 +253,7 @@ def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols,
                     continue
                 nl = _queue_row(lam, rpos, cpos, nl, p, r0 + a, c0, ga, line)
             x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
-                                        i == rows.size - 1)
+                                        i == b1 - 1)
             sat += s
             continue
         for a in range(p):
@@ -263,19 +264,19 @@ def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols,
                 continue
             for c in range(p):
                 sat += _write_pixel(ga * line[c], integer, frame, r0 + a, c0 + c)
-    _zero_blocks(frame, zrows, zcols, p)
     return sat
 
 
-def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, noise, integer,
+def _expose_blocks(images, p, rows, cols, b0, b1, photons, per_field, noise, integer,
                    seed, frame):
-    """Compiled: ``images (n, p, p)`` -> counts written into the blocks of ``frame``."""
+    """Compiled: ``images[b0:b1] (n, p, p)`` -> counts written into their blocks of
+    ``frame`` (``seed``'s stream)."""
     x = detector._seed_state(seed)
     lam, cnt, rpos, cpos = _batch_buffers(p)
     nl = 0
     d = -1.0                                    # the small-mean process: not started
     sat = 0
-    for i in range(rows.size):
+    for i in range(b0, b1):
         scale = photons
         if per_field:
             total = 0.0
@@ -288,27 +289,26 @@ def _expose_blocks(images, p, rows, cols, zrows, zcols, photons, per_field, nois
             for a in range(p):
                 nl = _queue_row(lam, rpos, cpos, nl, p, r0 + a, c0, scale, images[i, a])
             x, d, nl, s = _draw_if_full(lam, cnt, rpos, cpos, nl, p, integer, frame, x, d,
-                                        i == rows.size - 1)
+                                        i == b1 - 1)
             sat += s
             continue
         for a in range(p):
             for c in range(p):
                 sat += _write_pixel(scale * images[i, a, c], integer, frame, r0 + a, c0 + c)
-    _zero_blocks(frame, zrows, zcols, p)
     return sat
 
 
 def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach, s_maj,
-                      s_min, p, images, trunc):
-    """Compiled: each node's core, pixel-integrated along both detector axes (the fine
-    table of :func:`spots._pixel_core_table`), added over the pixels within ``reach`` of
-    it: ``images[i, minor, major]`` (transposed when the major axis is y), and the
-    truncation ``trunc[i] = 1 - sum``."""
+                      s_min, p, b0, b1, images, trunc):
+    """Compiled: for the subapertures ``b0 <= i < b1``, each node's core, pixel-integrated
+    along both detector axes (the fine table of :func:`spots._pixel_core_table`), added
+    over the pixels within ``reach`` of it: ``images[i, minor, major]`` (transposed when
+    the major axis is y), and the truncation ``trunc[i] = 1 - sum``."""
     c = (p - 1) / 2.0
     last = tab.size - 2
     pmaj = np.empty(p)
     acc = np.empty((p, p))                                  # (minor, major)
-    for i in range(images.shape[0]):
+    for i in range(b0, b1):
         img = images[i]
         acc[:, :] = 0.0
         for k in range(nk[i]):
@@ -431,6 +431,20 @@ class CartesianNodes:
             self.nk[idx] = kk
 
 
+def chunk_seeds(seed: int, chunks: int) -> list[int]:
+    """Independent 63-bit seeds of a frame's ``chunks`` draw streams (splitmix64 of
+    ``seed`` and the chunk index): the frame is a function of ``seed`` alone, whatever the
+    number of threads that render its chunks."""
+    out = []
+    mask = (1 << 64) - 1
+    for c in range(chunks):
+        z = (int(seed) * 0x9E3779B97F4A7C15 + (c + 1) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        out.append((z ^ (z >> 31)) >> 1)
+    return out
+
+
 class FastRenderer:
     """Frames of one layout written straight into a ``(G p, G p)`` buffer.
 
@@ -438,22 +452,56 @@ class FastRenderer:
     first use and kept for the last :attr:`KEEP` models, so a profile that changes every
     N frames, or blends between two knots, pays its table once.
 
+    The valid blocks are drawn in :attr:`CHUNKS` contiguous chunks, each from its own
+    stream (:func:`chunk_seeds`), so ``threads`` compiled calls (the kernels release the
+    GIL) can render one frame together and the frame does not depend on ``threads``.
+
     Args:
         lay: the sensor layout (valid blocks and their rows/columns).
+        threads: threads that render a frame (>= 1; 1 renders on the caller's thread).
     """
 
     KEEP = 4
+    CHUNKS = 4
 
-    def __init__(self, lay):
+    def __init__(self, lay, threads: int = 1):
+        if not (isinstance(threads, (int, np.integer)) and not isinstance(threads, bool)
+                and threads >= 1):
+            raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
         self.sensor = lay.sensor
         self.e = lay.e
         rows, cols = np.nonzero(lay.valid)              # row-major: the stack's order
         zr, zc = np.nonzero(~lay.valid)
         self.rows, self.cols = rows.astype(np.int64), cols.astype(np.int64)
         self.zrows, self.zcols = zr.astype(np.int64), zc.astype(np.int64)
+        edges = np.linspace(0, rows.size, self.CHUNKS + 1).round().astype(int)
+        self._ranges = list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+        self.threads = int(min(threads, self.CHUNKS))
+        self._pool = None                               # the helper threads, on first use
         self._tables = {}                               # id(model) -> (model, table)
         self._tables_lock = threading.Lock()
         self._images = None
+
+    def close(self) -> None:
+        """Stop the helper threads (rendering again restarts them)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def _chunks(self, kernel, seed) -> int:
+        """Runs ``kernel(b0, b1, seed_c) -> saturated`` on every chunk, the chunks split
+        between the caller and ``threads - 1`` helpers; returns the summed saturation."""
+        work = [(b0, b1, sd) for (b0, b1), sd in zip(self._ranges,
+                                                     chunk_seeds(seed, self.CHUNKS))]
+        if self.threads == 1:
+            return sum(kernel(*w) for w in work)
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="render")
+        groups = [work[t::self.threads] for t in range(self.threads)]
+        futures = [self._pool.submit(lambda g=g: sum(kernel(*w) for w in g))
+                   for g in groups[1:]]
+        sat = sum(kernel(*w) for w in groups[0])
+        return sat + sum(f.result() for f in futures)
 
     def _check(self, out):
         s = self.sensor
@@ -500,37 +548,41 @@ class FastRenderer:
             loc = detector_to_local(np.asarray(truth, dtype=float), self.e)
             kp, kd, q = core_kernels(model.sigma_px)
             trunc = np.empty(self.rows.size)
-            sat = _render_polar(t.lines, t2.lines, float(wb), t.d0,
-                                np.ascontiguousarray(loc[:, 0]), np.ascontiguousarray(loc[:, 1]),
-                                kp, kd, q, p, self.rows, self.cols, self.zrows, self.zcols,
-                                float(photons), bool(per_field), bool(noise), bool(integer),
-                                int(seed), out, trunc)
+            s_maj, s_min = np.ascontiguousarray(loc[:, 0]), np.ascontiguousarray(loc[:, 1])
+            sat = self._chunks(lambda b0, b1, sd: _render_polar(
+                t.lines, t2.lines, float(wb), t.d0, s_maj, s_min, kp, kd, q, p, self.rows,
+                self.cols, b0, b1, float(photons), bool(per_field), bool(noise), bool(integer),
+                sd, out, trunc), seed)
+            _zero_blocks(out, self.zrows, self.zcols, p)
             return trunc, int(sat)
         if self._images is None:
-            self._images = np.empty((self.rows.size, p, p))
-        images, trunc = self._cartesian(model, t, truth, self._images)
-        if wb > 0.0:
-            images_b, trunc_b = self._cartesian(model_b, t2, truth)
-            images += wb * (images_b - images)
-            trunc += wb * (trunc_b - trunc)
-        sat = _expose_blocks(images, p, self.rows, self.cols, self.zrows, self.zcols,
-                             float(photons), bool(per_field), bool(noise), bool(integer),
-                             int(seed), out)
+            self._images = (np.empty((self.rows.size, p, p)), np.empty((self.rows.size, p, p)))
+        images, images_b = self._images
+        trunc, trunc_b = np.empty(self.rows.size), np.empty(self.rows.size)
+        args = (float(photons), bool(per_field), bool(noise), bool(integer))
+
+        def chunk(b0, b1, sd):
+            self._cartesian(model, t, truth, images, trunc, b0, b1)
+            if wb > 0.0:
+                self._cartesian(model_b, t2, truth, images_b, trunc_b, b0, b1)
+                images[b0:b1] += wb * (images_b[b0:b1] - images[b0:b1])
+                trunc[b0:b1] += wb * (trunc_b[b0:b1] - trunc[b0:b1])
+            return _expose_blocks(images, p, self.rows, self.cols, b0, b1, *args, sd, out)
+
+        sat = self._chunks(chunk, seed)
+        _zero_blocks(out, self.zrows, self.zcols, p)
         return trunc, int(sat)
 
-    def _cartesian(self, model, t, truth, images=None):
-        """Noise-free ``(images (n, p, p), truncated (n,))`` of a cartesian model."""
+    def _cartesian(self, model, t, truth, images, trunc, b0, b1):
+        """Noise-free ``images[b0:b1] (p, p)`` and ``trunc[b0:b1]`` of a cartesian model."""
         p = self.sensor.pixels
         truth = np.asarray(truth, dtype=float)
         s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
         s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
-        images = np.empty((self.rows.size, p, p)) if images is None else images
-        trunc = np.empty(self.rows.size)
         tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
         _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
                           float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, p,
-                          images, trunc)
-        return images, trunc
+                          b0, b1, images, trunc)
 
 
 __all__ = ["FastRenderer", "PolarTable", "core_kernels", "H", "AVAILABLE"]

@@ -45,6 +45,7 @@ SENSOR_DOC = {
 }
 CONFIG_PARAMS = ("profile", "measured_index", "seconds_per_profile", "random_every", "turbulence",
                  "noise", "seed", "per_field")
+BUILD_PARAMS = CONFIG_PARAMS + ("single_subaperture", "render_threads")
 
 
 def _sensor_params():
@@ -61,6 +62,7 @@ def _sensor_params():
     return out
 
 
+RENDER_THREADS = 2           # render_threads' default: the live graph's 200 Hz (docs/transport.md)
 LATE_S = 1.0                 # a frame this late after its slot counts as behind the rate
 BATCH_FRAMES = 32            # frames rendered together for a small sensor
 BATCH_SUBAPERTURES = 1024    # ... as long as they hold at most this many spots
@@ -99,6 +101,9 @@ class SimulatorNode(FrameSource, Node):
                            "listen to frame before the first frame.", low=0, high=1000)
         parameters.declare(self, "start_delay_s", 0.0, "Extra wait before the first frame, s.",
                            low=0.0, high=600.0)
+        parameters.declare(self, "render_threads", RENDER_THREADS, "Threads that render one "
+                           "full-pupil frame (the frames are the same for any number; 2 halves "
+                           "the render's wall time where two cores are free).", low=1, high=4)
         declare_frame_transport(self)
 
         self._lock = threading.Lock()
@@ -123,8 +128,7 @@ class SimulatorNode(FrameSource, Node):
     # -- configuration ---------------------------------------------------------------
     def _build(self, changes: dict) -> Simulator:
         """A simulator from the current parameters plus ``changes``; ValueError if impossible."""
-        v = parameters.values(self, self._sensor_names + list(CONFIG_PARAMS)
-                              + ["single_subaperture"])
+        v = parameters.values(self, self._sensor_names + list(BUILD_PARAMS))
         v.update(changes)
         fields = {n: v[n] for n in self._sensor_names}
         for n in ("n_subaps", "pixels"):
@@ -135,14 +139,14 @@ class SimulatorNode(FrameSource, Node):
                 sensor = Sensor.paper_single(sensor.detector, **{
                     k: val for k, val in fields.items() if k != "detector"})
             config = SimulationConfig(**{n: v[n] for n in CONFIG_PARAMS})
-            return Simulator(sensor, config, fast=True)      # compiled noise where numba is
+            return Simulator(sensor, config, fast=True,       # compiled noise where numba is
+                             threads=int(v["render_threads"]))
         except (SensorError, TypeError) as exc:
             raise ValueError(str(exc)) from exc
 
     def _validate(self, params):
         changes = {p.name: p.value for p in params}
-        relevant = set(changes) & (set(self._sensor_names) | set(CONFIG_PARAMS)
-                                   | {"single_subaperture"})
+        relevant = set(changes) & (set(self._sensor_names) | set(BUILD_PARAMS))
         if relevant:
             try:
                 self._pending = self._build({k: changes[k] for k in relevant})
@@ -197,6 +201,8 @@ class SimulatorNode(FrameSource, Node):
             with self._lock:
                 sim = self.sim
                 if sim is not source:                      # new parameters: drop the old batch
+                    if source is not None:
+                        source.close()                     # its helper threads
                     queue, source = [], sim
                     sensor_id = shm.sensor_id(sim.sensor)
                 if not queue:
@@ -232,6 +238,8 @@ class SimulatorNode(FrameSource, Node):
                                    f"({(self.published - 1) / span:.1f} Hz wall-clock){late}")
         else:
             self.get_logger().info(f"published {self.published} frames{late}")
+        if source is not None:
+            source.close()
         self.health.set_state(health.OK, "finished")
 
     def _behind(self, rate: float, first: float) -> None:
