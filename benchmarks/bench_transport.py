@@ -307,6 +307,8 @@ def stage_rows(sensor: Sensor, label: str, tmp: Path, quick: bool) -> list[dict]
     image = bags.decode_image(cdr)[3]
     slopes = None
     for name, (alg, params) in ALGORITHMS.items():
+        if alg == "ml" and sensor.detector != "polar":      # refused there (not separable)
+            continue
         opts = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith(alg + ".")}
         if alg == "ann":
             opts["model"] = ann_model(sensor, tmp)
