@@ -59,12 +59,13 @@ ESTIMATORS = {
     "cog_pupil": ("cog", {"bias": "pupil"}),
     "cmf": ("cmf", {}),
     "ml": ("ml", {}),                                # polar only (refused on cartesian)
+    "gmf": ("gmf", {}),
     "corr": ("corr", {}),
     "cmf_history": ("cmf", {"reference": "history"}),
     "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
 }
-QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "ann_pupil", "ann_marg")
+QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "gmf", "ann_pupil", "ann_marg")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 

@@ -35,7 +35,7 @@ def stack_with_shifts(rng, n=N, sigma=1.0, photons=1000.0, amp=0.5):
 
 
 def test_registry_names():
-    assert set(ALGORITHMS) == {"cog", "tcog", "wcog", "cmf", "corr", "ann", "ml"}
+    assert set(ALGORITHMS) == {"cog", "tcog", "wcog", "cmf", "corr", "ann", "ml", "gmf"}
 
 
 @pytest.mark.parametrize("name, options, words", [

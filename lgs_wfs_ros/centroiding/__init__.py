@@ -13,11 +13,12 @@ from .base import Centroider
 from .cmf import CMF
 from .cog import CoG, TCoG, WCoG
 from .correlation import Correlation
+from .gmf import GMF
 from .ml import ML
 from .crb import crb, crb_covariance, crb_of, fisher, model_derivatives
 
 _CLASSES = {"cog": CoG, "tcog": TCoG, "wcog": WCoG, "cmf": CMF, "corr": Correlation, "ann": ANN,
-            "ml": ML}
+            "ml": ML, "gmf": GMF}
 ALGORITHMS = tuple(_CLASSES)
 
 
@@ -42,5 +43,5 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
 
 
 __all__ = ["ALGORITHMS", "make_centroider", "Centroider", "CoG", "TCoG", "WCoG", "CMF",
-           "Correlation", "ANN", "ML", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
+           "Correlation", "ANN", "ML", "GMF", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
            "model_derivatives"]

@@ -339,6 +339,61 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
             out[b, a] = (k - m + min(max(off, -0.5), 0.5)) * step
 
 
+def _grid_filter_impl(frame, origins, p, bias, filters, rsum, positions, background, out,
+                      index):
+    # per block: the CoG moments (exact int32 row sums), the calibrated CoG (minus bias) as
+    # the grid position nearest to the spot, then that position's two filter rows applied to
+    # the block (float64 sums): out[b] = position + (R x - background R 1) / flux
+    n = origins.shape[0]
+    c = (p - 1) / 2.0
+    side = positions.shape[0]
+    half = (side - 1) // 2
+    spacing = positions[1] - positions[0] if side > 1 else 1.0
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        s = 0
+        sx = 0
+        sy = 0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            rs = np.int32(0)
+            rx = np.int32(0)
+            for j in range(p):
+                v = np.int32(row[j])
+                rs += v
+                rx += v * np.int32(j)
+            s += rs
+            sx += rx
+            sy += rs * i
+        flux = s - background * p * p
+        if s <= 0 or not flux > 0:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
+            index[b] = -1
+            continue
+        # moments about the centre do not see a uniform background; the flux does
+        kx = min(max(int(np.floor(((sx - c * s) / flux - bias[b, 0]) / spacing + 0.5)) + half, 0),
+                 side - 1)
+        ky = min(max(int(np.floor(((sy - c * s) / flux - bias[b, 1]) / spacing + 0.5)) + half, 0),
+                 side - 1)
+        g = ky * side + kx
+        index[b] = g
+        w0 = filters[g, b, 0]
+        w1 = filters[g, b, 1]
+        a0 = 0.0
+        a1 = 0.0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            o = i * p
+            for j in range(p):
+                x = np.float64(row[j])
+                a0 += np.float64(w0[o + j]) * x
+                a1 += np.float64(w1[o + j]) * x
+        out[b, 0] = positions[kx] + (a0 - background * rsum[g, b, 0]) / flux
+        out[b, 1] = positions[ky] + (a1 - background * rsum[g, b, 1]) / flux
+
+
 if AVAILABLE:
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
@@ -350,6 +405,7 @@ if AVAILABLE:
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
                                   fastmath={"contract", "reassoc", "nsz", "arcp"})(_invert_response_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
+    _grid_filter = numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
     _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
     _block_contract = numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
 
@@ -460,6 +516,28 @@ def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
     return out
 
 
+def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray,
+                filters: np.ndarray, rsum: np.ndarray, positions: np.ndarray,
+                background: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes of the grid matched filter (:class:`.gmf.GMF`), one compiled pass per valid
+    block of an integer frame (see :func:`fits`): the filter of the grid position nearest to
+    the block's calibrated CoG (its CoG minus ``bias (n, 2)``, block axes) is applied to it.
+    ``filters (G*G, n, 2, p*p)`` float32 C-contiguous (position ``ky G + kx`` at
+    ``(positions[kx], positions[ky])``, ``positions (G,)`` px evenly spaced), ``rsum
+    (G*G, n, 2)`` their row sums, ``background`` counts per pixel. Returns ``(slopes (n, 2)``
+    px, block axes, NaN for a block without light, ``index (n,)``: the position used, -1
+    for none)."""
+    n = origins.shape[0]
+    if filters.dtype != np.float32 or not filters.flags.c_contiguous:
+        raise ValueError("grid_filter: filters must be C-contiguous float32")
+    out = np.empty((n, 2))
+    index = np.empty(n, dtype=np.int64)
+    _grid_filter(frame, origins, int(p), np.ascontiguousarray(bias, dtype=np.float64), filters,
+                 np.ascontiguousarray(rsum, dtype=np.float64),
+                 np.ascontiguousarray(positions, dtype=np.float64), float(background), out, index)
+    return out, index
+
+
 _NO_ACC = np.zeros((0, 2, 1))
 _warm = False
 
@@ -478,6 +556,8 @@ def warm_up() -> None:
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     ml_search(frame, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
               np.zeros((1, 2)), 2)
+    grid_filter(frame, o, 4, np.zeros((1, 2)), np.zeros((9, 1, 2, 16), np.float32),
+                np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
     block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
     block_marginals(frame, o, 4)
     _warm = True

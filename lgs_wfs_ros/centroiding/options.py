@@ -167,6 +167,17 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                 ("extent_px", 2.0, "Largest shift tabulated, pixels (beyond it the "
                  "pupil-calibrated CoG is returned).", {"low": 0.25, "high": 8.0}),
                 *_PUPIL),
+    "gmf": _rows("gmf", ("spacing_px", 0.5, "Distance between the filters' reference "
+                         "positions, pixels.", {"low": 0.05, "high": 4.0}),
+                 ("grid", 5, "Reference positions per axis, odd (5: +-1 px at 0.5 px).",
+                  {"low": 1, "high": 15}),
+                 ("background", -1.0, "Background subtracted per pixel and in the weighting, "
+                  "counts (-1: the sensor's).", {**_SENSOR, "high": 1e6}),
+                 ("read_noise_e", -1.0, "Read noise in the weighting, e- (-1: the sensor's).",
+                  {**_SENSOR, "high": 1e3}),
+                 ("var_floor", 1.0, "Smallest pixel variance in the weighting, counts^2.",
+                  {"low": 1e-6, "high": 1e6}),
+                 *_PUPIL),
 }
 
 
