@@ -109,13 +109,19 @@ def run(quick: bool = False) -> list[dict]:
         ("tcog", "tcog", {"threshold": 3.0}, "", reps),
         ("wcog", "wcog", {}, "", reps),
         ("cmf (static model reference, model weighting)", "cmf",
-         {"reference": "model", "weighting": "model"}, "< 1 ms and >= 5x faster than aotools", reps),
+         {"reference": "model", "weighting": "model", "linearize": False},
+         "< 1 ms and >= 5x faster than aotools", reps),
         ("cmf (static model reference, model weighting, linearized)", "cmf",
          {"reference": "model", "weighting": "model", "linearize": True}, "", reps),
-        ("cmf (paper: history of 5, image weighting, rebuilt every frame)", "cmf", {}, "", slow_reps),
+        ("cmf (default: pupil reference, model weighting, linearized; per-frame part)", "cmf",
+         {"pupil_period": 1000000}, "< 1 ms", reps),
+        ("cmf (paper: history of 5, image weighting, rebuilt every frame)", "cmf",
+         {"reference": "history"}, "", slow_reps),
         ("cmf (history of 5, model weighting, update_period 100)", "cmf",
-         {"weighting": "model", "update_period": 100}, "", reps),
+         {"reference": "history", "weighting": "model", "update_period": 100}, "", reps),
         ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
+        ("gmf (grid matched filter, per-frame part)", "gmf", {"pupil_period": 1000000},
+         "< 1 ms", reps),
     ]
     for label, name, opts, target, r in cases:
         c = make_centroider(name, sensor, **opts)

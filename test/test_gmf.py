@@ -105,3 +105,14 @@ def test_a_refit_rebuilds_the_filters_for_the_next_frame():
         gmf.centroid(counts.astype(np.float32))
     assert gmf.pupil.version > v0 and gmf._version == gmf.pupil.version
     assert gmf._filters is not before and not np.array_equal(gmf._filters, before)
+
+
+def test_quantized_rows_are_the_filters_to_half_a_step():
+    from lgs_wfs_ros.centroiding.gmf import quantize
+    r = np.random.default_rng(8).normal(0.0, 1e-3, (3, 5, 2, 256))
+    r[1, 2, 0] = 0.0                                          # an empty row stays empty
+    q, scale = quantize(r)
+    assert q.dtype == np.int16 and np.abs(q).max() == 32767
+    err = np.abs(q * scale[..., None] - r)
+    assert np.all(err <= 0.5 * scale[..., None] + 1e-18)
+    assert np.all(q[1, 2, 0] == 0) and np.all(np.isfinite(scale))

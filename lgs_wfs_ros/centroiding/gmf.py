@@ -20,8 +20,9 @@ and cartesian pixels.
 
 Cost: per frame one compiled pass per block (the CoG's moments, then the chosen filter's
 two rows; :func:`.kernels.grid_filter`) and the calibration's accumulation; at each refit
-5 renders per position (125 for the full pupil at 5 x 5: ~1-4 s) and the filters, 143 MB in
-float32 for the full pupil (one position's rows, 2 kB a block, are read each frame). Refits
+5 renders per position (125 for the full pupil at 5 x 5: ~3-11 s) and the filters, 72 MB in
+int16 for the full pupil (:func:`quantize`; one position's rows, 1 kB a block, are read each
+frame). Refits
 can run in a background thread (``pupil_async``), as for every pupil-calibrated estimator.
 """
 
@@ -82,7 +83,8 @@ class GMF(CoG):
     def _prepare(self, calibration) -> dict:
         """What a (background) refit builds: every position's filters, from ``calibration``."""
         n, g = self.n, self.positions
-        filters = np.empty((g.size ** 2, n, 2, self.p * self.p), dtype=np.float32)
+        filters = np.empty((g.size ** 2, n, 2, self.p * self.p), dtype=np.int16)
+        scale = np.empty((g.size ** 2, n, 2))
         rsum = np.empty((g.size ** 2, n, 2))
         ok = np.ones(n, dtype=bool)
         h = DERIVATIVE_STEP
@@ -92,21 +94,23 @@ class GMF(CoG):
             dx = (calibration.image_at(d + [h, 0.0]) - calibration.image_at(d - [h, 0.0])) / (2 * h)
             dy = (calibration.image_at(d + [0.0, h]) - calibration.image_at(d - [0.0, h])) / (2 * h)
             flux = img.sum(axis=1)
-            scale = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
-            design = np.stack([dx.reshape(n, -1) * scale, dy.reshape(n, -1) * scale,
-                               img * scale], axis=2)                      # (n, pp, 3)
+            unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
+            design = np.stack([dx.reshape(n, -1) * unit, dy.reshape(n, -1) * unit,
+                               img * unit], axis=2)                       # (n, pp, 3)
             var = np.maximum(np.maximum(img, 0.0) + self.background + self.read_noise ** 2,
                              self.var_floor)
             r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
-            filters[k] = r
-            rsum[k] = r.sum(axis=2)
+            filters[k], scale[k] = quantize(r)
+            rsum[k] = (filters[k] * scale[k][..., None]).sum(axis=2)
             ok &= good & (flux > 0)
-        return {"version": calibration.version, "filters": filters, "rsum": rsum, "ok": ok,
+        return {"version": calibration.version, "filters": filters, "scale": scale,
+                "rsum": rsum, "ok": ok,
                 "bias": calibration.cog_bias()}
 
     def _install(self, payload: dict) -> None:
         self._version = payload["version"]
-        self._filters, self._rsum = payload["filters"], payload["rsum"]
+        self._filters, self._scale = payload["filters"], payload["scale"]
+        self._rsum = payload["rsum"]
         self._ok, self._bias = payload["ok"], payload["bias"]
 
     def _refresh(self) -> None:
@@ -125,7 +129,8 @@ class GMF(CoG):
         self._refresh()
         if kernels.fits(data, self.sensor.frame_shape):
             out, index = kernels.grid_filter(data, kernels.origins(self), self.p, self._bias,
-                                             self._filters, self._rsum, self.positions,
+                                             self._filters, self._scale, self._rsum,
+                                             self.positions,
                                              self.background)
             seen = self.pupil.observe_frame(data)
         else:
@@ -152,7 +157,7 @@ class GMF(CoG):
         k = np.clip(k + self.half, 0, side - 1)
         index = k[:, 1] * side + k[:, 0]
         n = np.arange(self.n)
-        r = self._filters[index, n].astype(np.float64)                         # (n, 2, pp)
+        r = self._filters[index, n] * self._scale[index, n][..., None]          # (n, 2, pp)
         with np.errstate(divide="ignore", invalid="ignore"):
             out = self.positions[k] + (np.einsum("nkp,np->nk", r, flat)
                                        - self.background * self._rsum[index, n]) / flux[:, None]
@@ -173,4 +178,13 @@ class GMF(CoG):
         return d
 
 
-__all__ = ["GMF", "DERIVATIVE_STEP"]
+def quantize(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(q, scale)``: filter rows ``r (..., pp)`` as int16 ``q`` with ``r ~ scale q`` (one
+    scale per row, its largest coefficient at 32767: 3e-5 of it at most off), half the bytes
+    of float32 and integer sums in the compiled pass."""
+    top = np.abs(r).max(axis=-1)
+    scale = np.where(top > 0, top / 32767.0, 1.0)
+    return np.rint(r / scale[..., None]).astype(np.int16), scale
+
+
+__all__ = ["GMF", "DERIVATIVE_STEP", "quantize"]

@@ -339,11 +339,12 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
             out[b, a] = (k - m + min(max(off, -0.5), 0.5)) * step
 
 
-def _grid_filter_impl(frame, origins, p, bias, filters, rsum, positions, background, out,
-                      index):
+def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, background,
+                      out, index):
     # per block: the CoG moments (exact int32 row sums), the calibrated CoG (minus bias) as
     # the grid position nearest to the spot, then that position's two filter rows applied to
-    # the block (float64 sums): out[b] = position + (R x - background R 1) / flux
+    # the block (int16 rows, exact integer sums, then their scales):
+    # out[b] = position + (R x - background R 1) / flux
     n = origins.shape[0]
     c = (p - 1) / 2.0
     side = positions.shape[0]
@@ -381,17 +382,17 @@ def _grid_filter_impl(frame, origins, p, bias, filters, rsum, positions, backgro
         index[b] = g
         w0 = filters[g, b, 0]
         w1 = filters[g, b, 1]
-        a0 = 0.0
-        a1 = 0.0
+        a0 = np.int64(0)
+        a1 = np.int64(0)
         for i in range(p):
             row = frame[r0 + i, c0:c0 + p]
             o = i * p
             for j in range(p):
-                x = np.float64(row[j])
-                a0 += np.float64(w0[o + j]) * x
-                a1 += np.float64(w1[o + j]) * x
-        out[b, 0] = positions[kx] + (a0 - background * rsum[g, b, 0]) / flux
-        out[b, 1] = positions[ky] + (a1 - background * rsum[g, b, 1]) / flux
+                x = np.int64(row[j])
+                a0 += np.int64(w0[o + j]) * x
+                a1 += np.int64(w1[o + j]) * x
+        out[b, 0] = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
+        out[b, 1] = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
 
 
 if AVAILABLE:
@@ -517,22 +518,23 @@ def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
 
 
 def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray,
-                filters: np.ndarray, rsum: np.ndarray, positions: np.ndarray,
-                background: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                filters: np.ndarray, scale: np.ndarray, rsum: np.ndarray,
+                positions: np.ndarray, background: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Slopes of the grid matched filter (:class:`.gmf.GMF`), one compiled pass per valid
     block of an integer frame (see :func:`fits`): the filter of the grid position nearest to
     the block's calibrated CoG (its CoG minus ``bias (n, 2)``, block axes) is applied to it.
-    ``filters (G*G, n, 2, p*p)`` float32 C-contiguous (position ``ky G + kx`` at
-    ``(positions[kx], positions[ky])``, ``positions (G,)`` px evenly spaced), ``rsum
-    (G*G, n, 2)`` their row sums, ``background`` counts per pixel. Returns ``(slopes (n, 2)``
-    px, block axes, NaN for a block without light, ``index (n,)``: the position used, -1
-    for none)."""
+    ``filters (G*G, n, 2, p*p)`` int16 C-contiguous, the rows ``scale (G*G, n, 2)`` times
+    them (position ``ky G + kx`` at ``(positions[kx], positions[ky])``, ``positions (G,)``
+    px evenly spaced), ``rsum (G*G, n, 2)`` the rows' sums, ``background`` counts per pixel.
+    Returns ``(slopes (n, 2)`` px, block axes, NaN for a block without light, ``index
+    (n,)``: the position used, -1 for none)."""
     n = origins.shape[0]
-    if filters.dtype != np.float32 or not filters.flags.c_contiguous:
-        raise ValueError("grid_filter: filters must be C-contiguous float32")
+    if filters.dtype != np.int16 or not filters.flags.c_contiguous:
+        raise ValueError("grid_filter: filters must be C-contiguous int16")
     out = np.empty((n, 2))
     index = np.empty(n, dtype=np.int64)
     _grid_filter(frame, origins, int(p), np.ascontiguousarray(bias, dtype=np.float64), filters,
+                 np.ascontiguousarray(scale, dtype=np.float64),
                  np.ascontiguousarray(rsum, dtype=np.float64),
                  np.ascontiguousarray(positions, dtype=np.float64), float(background), out, index)
     return out, index
@@ -556,8 +558,8 @@ def warm_up() -> None:
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     ml_search(frame, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
               np.zeros((1, 2)), 2)
-    grid_filter(frame, o, 4, np.zeros((1, 2)), np.zeros((9, 1, 2, 16), np.float32),
-                np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
+    grid_filter(frame, o, 4, np.zeros((1, 2)), np.zeros((9, 1, 2, 16), np.int16),
+                np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
     block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
     block_marginals(frame, o, 4)
     _warm = True
