@@ -402,7 +402,7 @@ def rows(res: dict) -> list[dict]:
     """benchmarks/run.py rows of a result."""
     rows = []
     for ph in ("316", "1000"):
-        for lb in ("cog", "cog_pupil", "cmf", "ml", "ann_marg"):
+        for lb in ("cog", "cog_pupil", "cmf", "ml", "gmf", "ann_marg"):
             vals = [c["photons"][ph][lb]["ratio_crb"] for c in res["cases"]
                     if c["tilts"] == "ar1" and lb in c["photons"][ph]]
             if vals:

@@ -131,7 +131,7 @@ def parser() -> argparse.ArgumentParser:
                    help="full-pupil frame rate in Hz (0: the highest measured to hold here)")
     p.add_argument("--algorithms", default="cog,cmf,ann", metavar="A,B,...",
                    help="centroiders run side by side, comma-separated, from cog, tcog, wcog, "
-                        "cmf, corr, ann, ml (ml: polar detector only; default: %(default)s)")
+                        "cmf, corr, ann, ml, gmf (ml: polar detector only; default: %(default)s)")
 
     p = _add(sub, "inspect", _inspect, "topics, counts, rates, sensor and centroider changes of a bag",
              positionals=[("bag", "an MCAP bag (any recorder)")])

@@ -28,7 +28,7 @@ stacks) numpy scans the whole grid (~6 ms a full frame instead of ~0.6 ms).
 Measured on unseen profile families (``benchmarks/bench_accuracy.py``, polar): 1.00-1.08x the
 Cramer-Rao bound where the calibrated CoG is at 0.83-2.6x and the default CMF at 1.15-3.2x.
 On a cartesian detector the spot is not separable in the pixel axes and this estimator is
-refused (use ``cmf`` or ``cog`` with ``bias=pupil``).
+refused (use ``gmf``, :mod:`.gmf`, which reads whole blocks).
 """
 
 from __future__ import annotations
@@ -119,8 +119,8 @@ class ML(CoG):
         check_options(self.name, options, self._public)
         if sensor.detector != "polar":
             raise ValueError("ml needs the polar detector (the spot must be separable in the "
-                             "block axes); on a cartesian detector use cmf, or cog with "
-                             "bias=pupil")
+                             "block axes); on a cartesian detector use gmf (matched filters "
+                             "at a grid of positions), cmf, or cog with bias=pupil")
         step = number("step_px", options.pop("step_px", 0.25), minimum=0, strict=True)
         if abs(1.0 / step - round(1.0 / step)) > 1e-9:
             raise ValueError(f"ml: step_px must be 1 / an integer (0.25, 0.125, ...), got {step}")
