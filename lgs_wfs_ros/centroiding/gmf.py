@@ -20,7 +20,8 @@ and cartesian pixels.
 
 Cost: per frame one compiled pass per block (the CoG's moments, then the chosen filter's
 two rows; :func:`.kernels.grid_filter`) and the calibration's accumulation; at each refit
-5 renders per position (125 for the full pupil at 5 x 5: ~3-11 s) and the filters, 72 MB in
+5 renders per position (125 for the full pupil at 5 x 5, through the simulator's compiled
+renderer: a refit takes ~1.2 s polar, ~3.2 s cartesian) and the filters, 72 MB in
 int16 for the full pupil (:func:`quantize`; one position's rows, 1 kB a block, are read each
 frame). Refits
 can run in a background thread (``pupil_async``), as for every pupil-calibrated estimator.
@@ -31,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
+from ..optics import fast_frames, geometry
+from ..optics.model_spot import shift_to_detector
 from .base import Centroider, check_options, number
 from .cmf import solve_filter
 from .cog import CoG
@@ -88,11 +91,12 @@ class GMF(CoG):
         rsum = np.empty((g.size ** 2, n, 2))
         ok = np.ones(n, dtype=bool)
         h = DERIVATIVE_STEP
+        image_at = self._renders(calibration)
         for k, (gy, gx) in enumerate((a, b) for a in g for b in g):
             d = np.tile([gx, gy], (n, 1))
-            img = calibration.image_at(d).reshape(n, -1)                 # counts
-            dx = (calibration.image_at(d + [h, 0.0]) - calibration.image_at(d - [h, 0.0])) / (2 * h)
-            dy = (calibration.image_at(d + [0.0, h]) - calibration.image_at(d - [0.0, h])) / (2 * h)
+            img = image_at(d).reshape(n, -1)                             # counts
+            dx = (image_at(d + [h, 0.0]) - image_at(d - [h, 0.0])) / (2 * h)
+            dy = (image_at(d + [0.0, h]) - image_at(d - [0.0, h])) / (2 * h)
             flux = img.sum(axis=1)
             unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
             design = np.stack([dx.reshape(n, -1) * unit, dy.reshape(n, -1) * unit,
@@ -106,6 +110,31 @@ class GMF(CoG):
         return {"version": calibration.version, "filters": filters, "scale": scale,
                 "rsum": rsum, "ok": ok,
                 "bias": calibration.cog_bias()}
+
+    def _renders(self, calibration):
+        """``image_at(shift_block (n, 2)) -> (n, p, p)`` counts of the calibration's spots
+        (:meth:`.pupil.PupilCalibration.image_at`), through the simulator's compiled
+        renderer where numba is (:mod:`..optics.fast_frames`: the same spot model, 2e-6 of
+        the light off; a full frame in ~1 ms polar, ~20 ms cartesian instead of ~10 / ~80
+        ms), else the calibration's own renders."""
+        if not fast_frames.AVAILABLE:
+            return calibration.image_at
+        sensor = self.sensor.replace(dtype="float32")           # expected counts, unrounded
+        lay = geometry.layout(sensor)
+        renderer = fast_frames.FastRenderer(lay)
+        model = calibration.spots().model
+        img0 = calibration.reference()[0]
+        flux = np.full(self.n, float(self.sensor.photons)) if calibration.flux is None \
+            else calibration.flux
+        tot = img0.reshape(self.n, -1).sum(axis=1)
+        scale = (flux / np.where(tot > 0, tot, 1.0))[:, None, None]
+        frame = np.empty(sensor.frame_shape, dtype=np.float32)
+
+        def image_at(shift_block):
+            truth = shift_to_detector(sensor, self.layout.e, shift_block)
+            renderer.render(model, truth, frame, 1.0, 0, noise=False, per_field=False)
+            return geometry.frame_to_stack(frame, lay).astype(np.float64) * scale
+        return image_at
 
     def _install(self, payload: dict) -> None:
         self._version = payload["version"]
