@@ -117,6 +117,9 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     # refits in a thread, each installed as soon as it is ready (lag 0: the frame path never
     # waits; the first refit builds the thin-layer basis, ~3 s)
     "ml_async": ("ml", {"ml.pupil_async": True, "ml.pupil_async_lag": 0}),
+    # matched filters at a grid of positions, refits (125 renders, ~1-3 s) in a thread every
+    # 1400 frames (7 s at 200 Hz: the profile evolves over seconds)
+    "gmf_async": ("gmf", {"gmf.pupil_async": True, "gmf.pupil_period": 1400}),
 }
 
 
