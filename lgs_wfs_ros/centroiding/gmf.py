@@ -159,8 +159,7 @@ class GMF(CoG):
         if kernels.fits(data, self.sensor.frame_shape):
             out, index = kernels.grid_filter(data, kernels.origins(self), self.p, self._bias,
                                              self._filters, self._scale, self._rsum,
-                                             self.positions,
-                                             self.background)
+                                             self.positions, self.background)
             seen = self.pupil.observe_frame(data)
         else:
             flat = self.float_stack(data).reshape(self.n, -1)
