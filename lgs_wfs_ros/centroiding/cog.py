@@ -126,6 +126,31 @@ class CoG(Centroider):
         return out
 
 
+class TabledCoG(CoG):
+    """A pupil-calibrated CoG whose refits also build per-profile tables (``ml``'s
+    likelihood tables, ``gmf``'s filters). Subclasses give ``_prepare(calibration) ->
+    payload`` (a dict with the calibration's ``version``; run in the refit thread when
+    ``pupil_async``) and ``_install(payload)``, and call :meth:`_start_tables` once built."""
+
+    def _start_tables(self) -> None:
+        self.pupil.prepare = self._prepare
+        self._install(self._prepare(self.pupil))
+
+    def _refresh(self) -> None:
+        """Tables of the calibration's current profile (a background refit's, or built now)."""
+        payload, self.pupil.payload = self.pupil.payload, None
+        if payload is not None and payload["version"] == self.pupil.version:
+            self._install(payload)
+        elif self._version != self.pupil.version:
+            self._install(self._prepare(self.pupil))
+
+    centroid_many = Centroider.centroid_many     # frame by frame: the calibration is stateful
+
+    def reset(self) -> None:
+        self.pupil.reset()
+        self._install(self._prepare(self.pupil))
+
+
 class TCoG(CoG):
     """Thresholded centre of gravity.
 

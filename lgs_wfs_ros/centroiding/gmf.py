@@ -34,15 +34,15 @@ import numpy as np
 from . import kernels
 from ..optics import fast_frames, geometry
 from ..optics.model_spot import shift_to_detector
-from .base import Centroider, check_options, number
+from .base import check_options, number
 from .cmf import solve_filter
-from .cog import CoG
+from .cog import CoG, TabledCoG
 
 #: shift of the central differences that give each reference's derivatives, px
 DERIVATIVE_STEP = 0.01
 
 
-class GMF(CoG):
+class GMF(TabledCoG):
     """Matched filters at a grid of reference positions (see the module docstring).
 
     Options:
@@ -79,8 +79,7 @@ class GMF(CoG):
         self.spacing, self.half = spacing, grid // 2
         self.read_noise, self.var_floor = rn, floor
         self.positions = (np.arange(grid) - self.half) * spacing          # (grid,) px
-        self.pupil.prepare = self._prepare
-        self._install(self._prepare(self.pupil))
+        self._start_tables()
 
     # -- filters -------------------------------------------------------------------------
     def _prepare(self, calibration) -> dict:
@@ -142,14 +141,6 @@ class GMF(CoG):
         self._rsum = payload["rsum"]
         self._ok, self._bias = payload["ok"], payload["bias"]
 
-    def _refresh(self) -> None:
-        """Filters of the calibration's current profile (a background refit's, or built now)."""
-        payload, self.pupil.payload = self.pupil.payload, None
-        if payload is not None and payload["version"] == self.pupil.version:
-            self._install(payload)
-        elif self._version != self.pupil.version:
-            self._install(self._prepare(self.pupil))
-
     # -- frames --------------------------------------------------------------------------
     def centroid(self, data) -> np.ndarray:
         """As :meth:`Centroider.centroid`: each block through the filter of the grid position
@@ -193,12 +184,6 @@ class GMF(CoG):
         out[bad] = np.nan
         index[bad] = -1
         return out, index
-
-    centroid_many = Centroider.centroid_many     # frame by frame: the calibration is stateful
-
-    def reset(self) -> None:
-        self.pupil.reset()
-        self._install(self._prepare(self.pupil))
 
     def describe(self) -> dict:
         d = super().describe()

@@ -81,26 +81,32 @@ def fits(frame, shape) -> bool:
             and frame.strides[1] == frame.itemsize)
 
 
+def _block_moments_impl(frame, r0, c0, p):
+    # (total, sum of x, sum of y) of the block at (r0, c0), pixel indices from 0: exact,
+    # int32 per row (at most 65535 p (p - 1) / 2: 7.9 M for p = 16; fits up to p = 255)
+    s = 0
+    sx = 0
+    sy = 0
+    for i in range(p):
+        row = frame[r0 + i, c0:c0 + p]
+        rs = np.int32(0)
+        rx = np.int32(0)
+        for j in range(p):
+            v = np.int32(row[j])
+            rs += v
+            rx += v * np.int32(j)
+        s += rs
+        sx += rx
+        sy += rs * i
+    return s, sx, sy
+
+
 def _cog_moments_impl(frame, origins, p, centre, out):
-    # int32 per row: at most 65535 p (p - 1) / 2 (7.9 M for p = 16; fits up to p = 255)
     n = origins.shape[0]
     for b in range(n):
         r0 = origins[b, 0]
         c0 = origins[b, 1]
-        s = 0
-        sx = 0
-        sy = 0
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
-            rx = np.int32(0)
-            for j in range(p):
-                v = np.int32(row[j])
-                rs += v
-                rx += v * np.int32(j)
-            s += rs
-            sx += rx
-            sy += rs * i
+        s, sx, sy = _block_moments(frame, r0, c0, p)
         out[b, 0] = s
         out[b, 1] = sx - centre * s
         out[b, 2] = sy - centre * s
@@ -353,20 +359,7 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
     for b in range(n):
         r0 = origins[b, 0]
         c0 = origins[b, 1]
-        s = 0
-        sx = 0
-        sy = 0
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
-            rx = np.int32(0)
-            for j in range(p):
-                v = np.int32(row[j])
-                rs += v
-                rx += v * np.int32(j)
-            s += rs
-            sx += rx
-            sy += rs * i
+        s, sx, sy = _block_moments(frame, r0, c0, p)
         flux = s - background * p * p
         if s <= 0 or not flux > 0:
             out[b, 0] = np.nan
@@ -405,6 +398,7 @@ if AVAILABLE:
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
                                   fastmath={"contract", "reassoc", "nsz", "arcp"})(_invert_response_impl)
+    _block_moments = numba.njit(cache=True, nogil=True, inline="always")(_block_moments_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
     _grid_filter = numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
     _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)

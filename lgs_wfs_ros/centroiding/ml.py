@@ -36,8 +36,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .cog import CoG
-from .base import Centroider, check_options, number
+from .cog import CoG, TabledCoG
+from .base import check_options, number
 from ..optics.model_spot import ProfileSpots
 
 #: smallest tabulated light, relative to the largest of the subaperture's axis (a count far
@@ -97,7 +97,7 @@ class Tables:
         return self.logs[:, axis][:, phase[:, None], cols].astype(np.float64)
 
 
-class ML(CoG):
+class ML(TabledCoG):
     """Poisson maximum likelihood on the block marginals (see the module docstring).
 
     Options:
@@ -137,8 +137,7 @@ class ML(CoG):
         self.options.pop("bias", None)
         self.step, self.extent = step, extent
         self._version = None
-        self.pupil.prepare = self._prepare
-        self._install(self._prepare(self.pupil))
+        self._start_tables()
         kernels.warm_up()
 
     # -- tables --------------------------------------------------------------------------
@@ -154,14 +153,6 @@ class ML(CoG):
         self._version = payload["version"]
         self._tables, self._bias = payload["tables"], payload["bias"]
         self._rows = None                           # the numpy path's, made when needed
-
-    def _refresh(self) -> None:
-        """Tables of the calibration's current profile (a background refit's, or built now)."""
-        payload, self.pupil.payload = self.pupil.payload, None
-        if payload is not None and payload["version"] == self.pupil.version:
-            self._install(payload)
-        elif self._version != self.pupil.version:
-            self._install(self._prepare(self.pupil))
 
     # -- frames --------------------------------------------------------------------------
     def centroid(self, data) -> np.ndarray:
@@ -209,12 +200,6 @@ class ML(CoG):
         with np.errstate(divide="ignore", invalid="ignore"):
             cog = marg @ (np.arange(self.p) - self.centre) / tot - self._bias[:, axis]
         return np.where(inner, est, cog)
-
-    centroid_many = Centroider.centroid_many     # frame by frame: the calibration is stateful
-
-    def reset(self) -> None:
-        self.pupil.reset()
-        self._install(self._prepare(self.pupil))
 
     def describe(self) -> dict:
         d = super().describe()
