@@ -15,6 +15,8 @@ in registers. Outside the pupil nothing is read.
   network's input on a polar detector, :mod:`.ann`).
 - :func:`ml_search`: the ML estimator's marginals, calibrated-CoG start and hill climb on
   its likelihood tables (:mod:`.ml`), one pass over each block.
+- :func:`corr_peak`: the correlation centroider's map at the 3 x 3 whole lags around its
+  peak (found from the CoG, then climbed), and the peak fit, instead of the FFT map.
 - :func:`invert_response`: the linearisation's per-subaperture inversion of a 2-D
   Chebyshev response (:mod:`.linearize`): polynomial start and Newton steps, one pass per
   subaperture in registers (numpy needs a dozen ``(n, 2, D, D)`` passes and ~50 calls).
@@ -388,6 +390,90 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
 
 
+def _lag_product_impl(xpad, ref, p, tx, ty):
+    # c(tx, ty) = sum_u x(u + t) ref(u): x zero-padded by p on every side in xpad (3p, 3p),
+    # so every lag within +-p has the same bounds (float32 products and sums, vectorised)
+    acc = np.float32(0.0)
+    for i in range(p):
+        xr = xpad[p + ty + i]
+        rr = ref[i]
+        o = p + tx
+        for j in range(p):
+            acc += xr[o + j] * rr[j]
+    return acc
+
+
+def _corr_peak_impl(frame, origins, p, refs, ref_cog, background, log, climbs, out):
+    # per block: the block less the background (float64), its CoG; the whole lag nearest
+    # to CoG - the reference's CoG; the 3 x 3 correlation values around it, moved to their
+    # maximum until it is the centre (at most ``climbs`` moves); then the quadratic (of the
+    # log with ``log``) through the 3 x 3 values, as correlation._parabola_peak
+    n = origins.shape[0]
+    c = (p - 1) / 2.0
+    x = np.zeros((3 * p, 3 * p), dtype=np.float32)
+    v = np.empty(9)
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        s = 0.0
+        sx = 0.0
+        sy = 0.0
+        for i in range(p):
+            for j in range(p):
+                a = frame[r0 + i, c0 + j] - background
+                x[p + i, p + j] = a
+                s += a
+                sx += a * (j - c)
+                sy += a * (i - c)
+        ref = refs[b]
+        if not s > 0:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
+            continue
+        lim = p - 2
+        lx = min(max(int(np.floor(sx / s - ref_cog[b, 0] + 0.5)), -lim), lim)
+        ly = min(max(int(np.floor(sy / s - ref_cog[b, 1] + 0.5)), -lim), lim)
+        for step in range(climbs + 1):
+            k = 0
+            best = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    v[k] = _lag_product(x, ref, p, lx + dx, ly + dy)
+                    if v[k] > v[best]:
+                        best = k
+                    k += 1
+            if best == 4 or step == climbs:
+                break
+            nx = min(max(lx + best % 3 - 1, -lim), lim)
+            ny = min(max(ly + best // 3 - 1, -lim), lim)
+            if nx == lx and ny == ly:
+                break
+            lx = nx
+            ly = ny
+        if log:
+            positive = True
+            for k in range(9):
+                if not v[k] > 0:
+                    positive = False
+            if positive:
+                for k in range(9):
+                    v[k] = np.log(v[k])
+        bb = (v[5] - v[3]) / 2
+        d = (v[5] + v[3]) / 2 - v[4]
+        cc = (v[7] - v[1]) / 2
+        f = (v[7] + v[1]) / 2 - v[4]
+        e = (v[8] - v[6] - v[2] + v[0]) / 4
+        det = 4 * d * f - e * e
+        if d < 0 and det > 0:
+            ox = (e * cc - 2 * f * bb) / det
+            oy = (e * bb - 2 * d * cc) / det
+        else:
+            ox = -bb / (2 * d) if d < 0 else 0.0
+            oy = -cc / (2 * f) if f < 0 else 0.0
+        out[b, 0] = lx + min(max(ox, -1.0), 1.0)
+        out[b, 1] = ly + min(max(oy, -1.0), 1.0)
+
+
 if AVAILABLE:
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
@@ -401,6 +487,10 @@ if AVAILABLE:
     _block_moments = numba.njit(cache=True, nogil=True, inline="always")(_block_moments_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
     _grid_filter = numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
+    _lag_product = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(
+        _lag_product_impl)
+    _corr_peak = numba.njit(cache=True, nogil=True, error_model="numpy",
+                            fastmath={"contract", "reassoc", "nsz", "arcp"})(_corr_peak_impl)
     _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
     _block_contract = numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
 
@@ -534,6 +624,25 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
     return out, index
 
 
+def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refs: np.ndarray,
+              ref_cog: np.ndarray, background: float = 0.0, log: bool = True,
+              climbs: int = 4) -> np.ndarray:
+    """Correlation centroids (:class:`.correlation.Correlation`, linear correlation, peak
+    ``gauss`` or ``parabola``), one compiled pass per valid block of an integer frame (see
+    :func:`fits`): the correlation ``c(t) = sum_u x(u + t) ref(u)`` of the block less
+    ``background`` with its reference ``refs (n, p, p)`` (background removed, any flux
+    scale) is evaluated only on the 3 x 3 whole lags around the block's CoG minus
+    ``ref_cog (n, 2)`` (the references' CoGs, px from the block centre), moved up to
+    ``climbs`` times towards the largest value, then refined by the quadratic through those
+    9 values (of their log with ``log``). Returns ``(n, 2)`` px, block axes, NaN for a block
+    without light. Where the map has one maximum this is the whole map's peak fit."""
+    out = np.empty((origins.shape[0], 2))
+    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refs, dtype=np.float32),
+               np.ascontiguousarray(ref_cog, dtype=np.float64), float(background), bool(log),
+               int(climbs), out)
+    return out
+
+
 _NO_ACC = np.zeros((0, 2, 1))
 _warm = False
 
@@ -556,4 +665,5 @@ def warm_up() -> None:
                 np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
     block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
     block_marginals(frame, o, 4)
+    corr_peak(frame, o, 4, np.zeros((1, 4, 4)), np.zeros((1, 2)))
     _warm = True
