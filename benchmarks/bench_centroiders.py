@@ -120,6 +120,8 @@ def run(quick: bool = False) -> list[dict]:
         ("cmf (history of 5, model weighting, update_period 100)", "cmf",
          {"reference": "history", "weighting": "model", "update_period": 100}, "", reps),
         ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
+        ("corr (default: pupil reference, gauss 3x3 peak; per-frame part)", "corr",
+         {"pupil_period": 1000000}, "< 1 ms", reps),
         ("gmf (grid matched filter, per-frame part)", "gmf", {"pupil_period": 1000000},
          "< 1 ms", reps),
     ]

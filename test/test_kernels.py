@@ -126,7 +126,7 @@ def test_corr_with_the_kernel_equals_the_fft_maps(detector, monkeypatch):
 
 
 def test_corr_kernel_climbs_to_the_peak_from_a_wrong_start():
-    """Started 2 lags off (a wrong reference CoG), the climb reaches the map's maximum."""
+    """Started 2 or 5 lags off (a wrong reference CoG), the climb reaches the map's maximum."""
     sensor, frames = _simulated("polar", 1)
     corr = make_centroider("corr", sensor)
     refs, ref_cog = corr._ref_kernel()
@@ -134,6 +134,9 @@ def test_corr_kernel_climbs_to_the_peak_from_a_wrong_start():
     want = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog, corr.background)
     off = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog + [2.0, -2.0], corr.background)
     np.testing.assert_allclose(off, want, atol=1e-9)
+    far = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog + [-5.0, 0.0], corr.background,
+                            climbs=8)            # lags beyond the padding: the direct sums
+    np.testing.assert_allclose(far, want, atol=1e-5)
     stuck = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog + [2.0, -2.0],
                               corr.background, climbs=0)
     assert np.abs(stuck - want).max() > 0.5

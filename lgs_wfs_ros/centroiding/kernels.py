@@ -390,27 +390,36 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
 
 
-def _lag_product_impl(xpad, ref, p, tx, ty):
-    # c(tx, ty) = sum_u x(u + t) ref(u): x zero-padded by p on every side in xpad (3p, 3p),
-    # so every lag within +-p has the same bounds (float32 products and sums, vectorised)
+def _lag_product_impl(xw, refw, p, m, tx, ty):
+    # c(tx, ty) = sum_u x(u + t) ref(u). xw holds the block at rows p..2p-1, columns
+    # m..m+p-1 of rows W = p + 2m wide, zero elsewhere (3p rows); refw the reference in the
+    # same row layout (p rows). For |tx| <= m one contiguous dot of p W values (the zero
+    # columns absorb the shift: vectorised); beyond, the overlap summed directly.
+    w = p + 2 * m
+    n = p * w
+    if -m <= tx <= m:
+        xs = xw[(p + ty) * w + tx:(p + ty) * w + tx + n]
+        acc = np.float32(0.0)
+        for k in range(n):
+            acc += xs[k] * refw[k]
+        return acc
     acc = np.float32(0.0)
-    for i in range(p):
-        xr = xpad[p + ty + i]
-        rr = ref[i]
-        o = p + tx
-        for j in range(p):
-            acc += xr[o + j] * rr[j]
+    for i in range(max(0, -ty), min(p, p - ty)):
+        for j in range(max(0, -tx), min(p, p - tx)):
+            acc += xw[(p + i + ty) * w + m + j + tx] * refw[i * w + m + j]
     return acc
 
 
-def _corr_peak_impl(frame, origins, p, refs, ref_cog, background, log, climbs, out):
-    # per block: the block less the background (float64), its CoG; the whole lag nearest
-    # to CoG - the reference's CoG; the 3 x 3 correlation values around it, moved to their
-    # maximum until it is the centre (at most ``climbs`` moves); then the quadratic (of the
-    # log with ``log``) through the 3 x 3 values, as correlation._parabola_peak
+def _corr_peak_impl(frame, origins, p, refw, m, ref_cog, background, log, climbs, out):
+    # per block: the block less the background into the padded buffer, its CoG; the whole
+    # lag nearest to CoG - the reference's CoG; the 3 x 3 correlation values around it,
+    # moved to their maximum until it is the centre (at most ``climbs`` moves); then the
+    # quadratic (of the log with ``log``) through the 3 x 3 values, as
+    # correlation._parabola_peak
     n = origins.shape[0]
     c = (p - 1) / 2.0
-    x = np.zeros((3 * p, 3 * p), dtype=np.float32)
+    w = p + 2 * m
+    xw = np.zeros(3 * p * w, dtype=np.float32)
     v = np.empty(9)
     for b in range(n):
         r0 = origins[b, 0]
@@ -419,13 +428,19 @@ def _corr_peak_impl(frame, origins, p, refs, ref_cog, background, log, climbs, o
         sx = 0.0
         sy = 0.0
         for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            dst = xw[(p + i) * w + m:(p + i) * w + m + p]
+            rs = 0.0
+            rx = 0.0
             for j in range(p):
-                a = frame[r0 + i, c0 + j] - background
-                x[p + i, p + j] = a
-                s += a
-                sx += a * (j - c)
-                sy += a * (i - c)
-        ref = refs[b]
+                a = row[j] - background
+                dst[j] = a
+                rs += a
+                rx += a * j
+            s += rs
+            sx += rx - c * rs
+            sy += (i - c) * rs
+        ref = refw[b]
         if not s > 0:
             out[b, 0] = np.nan
             out[b, 1] = np.nan
@@ -438,7 +453,7 @@ def _corr_peak_impl(frame, origins, p, refs, ref_cog, background, log, climbs, o
             best = 0
             for dy in range(-1, 2):
                 for dx in range(-1, 2):
-                    v[k] = _lag_product(x, ref, p, lx + dx, ly + dy)
+                    v[k] = _lag_product(xw, ref, p, m, lx + dx, ly + dy)
                     if v[k] > v[best]:
                         best = k
                     k += 1
@@ -624,20 +639,38 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
     return out, index
 
 
-def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refs: np.ndarray,
+#: zero columns each side of a block in :func:`corr_peak`'s buffers: lags within +-3 px
+#: across the columns are one contiguous dot product each
+CORR_PAD = 3
+
+
+def corr_rows(refs: np.ndarray) -> np.ndarray:
+    """``(n, p * (p + 2 CORR_PAD))`` float32: references ``(n, p, p)`` laid out for
+    :func:`corr_peak` (each row between ``CORR_PAD`` zeros each side)."""
+    n, p, _ = refs.shape
+    out = np.zeros((n, p, p + 2 * CORR_PAD), dtype=np.float32)
+    out[:, :, CORR_PAD:CORR_PAD + p] = refs
+    return out.reshape(n, -1)
+
+
+def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refw: np.ndarray,
               ref_cog: np.ndarray, background: float = 0.0, log: bool = True,
               climbs: int = 4) -> np.ndarray:
     """Correlation centroids (:class:`.correlation.Correlation`, linear correlation, peak
     ``gauss`` or ``parabola``), one compiled pass per valid block of an integer frame (see
     :func:`fits`): the correlation ``c(t) = sum_u x(u + t) ref(u)`` of the block less
-    ``background`` with its reference ``refs (n, p, p)`` (background removed, any flux
-    scale) is evaluated only on the 3 x 3 whole lags around the block's CoG minus
-    ``ref_cog (n, 2)`` (the references' CoGs, px from the block centre), moved up to
-    ``climbs`` times towards the largest value, then refined by the quadratic through those
-    9 values (of their log with ``log``). Returns ``(n, 2)`` px, block axes, NaN for a block
-    without light. Where the map has one maximum this is the whole map's peak fit."""
-    out = np.empty((origins.shape[0], 2))
-    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refs, dtype=np.float32),
+    ``background`` with its reference (``refw``: :func:`corr_rows` of the references
+    ``(n, p, p)``, background removed, any flux scale) is evaluated only on the 3 x 3 whole
+    lags around the block's CoG minus ``ref_cog (n, 2)`` (the references' CoGs, px from the
+    block centre), moved up to ``climbs`` times towards the largest value, then refined by
+    the quadratic through those 9 values (of their log with ``log``). Returns ``(n, 2)`` px,
+    block axes, NaN for a block without light. Where the map has one maximum this is the
+    whole map's peak fit."""
+    n = origins.shape[0]
+    if refw.shape != (n, p * (p + 2 * CORR_PAD)) or refw.dtype != np.float32:
+        raise ValueError("corr_peak: refw must be corr_rows(references) (float32)")
+    out = np.empty((n, 2))
+    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refw), CORR_PAD,
                np.ascontiguousarray(ref_cog, dtype=np.float64), float(background), bool(log),
                int(climbs), out)
     return out
@@ -665,5 +698,5 @@ def warm_up() -> None:
                 np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
     block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
     block_marginals(frame, o, 4)
-    corr_peak(frame, o, 4, np.zeros((1, 4, 4)), np.zeros((1, 2)))
+    corr_peak(frame, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
     _warm = True
