@@ -65,7 +65,7 @@ ESTIMATORS = {
     "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
 }
-QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "gmf", "ann_pupil", "ann_marg")
+QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "gmf", "corr", "ann_pupil", "ann_marg")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 
@@ -80,11 +80,6 @@ def full_cases():
         for tilt in ("frozen_inf", "frozen_30"):
             out.append((fam, "polar", 0.0, tilt))
     return out
-
-
-#: the costliest estimator (an FFT correlation per subaperture, ~55 ms a frame) runs in the
-#: first quick case only
-QUICK_ONCE = ("corr",)
 
 
 def quick_cases():
@@ -340,12 +335,9 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print) -> dict:
             f"{AR1_RMS_PX} px rms per axis; estimators built with options.build (the node's "
             f"defaults) plus: " + "; ".join(f"{lb} = {ESTIMATORS[lb][0]} {ESTIMATORS[lb][1] or ''}"
                                               for lb in labels))
-    if quick:
-        what += f"; {', '.join(QUICK_ONCE)} in the first case only (its FFTs cost ~55 ms a frame)"
     out = {"mode": "quick" if quick else "full", "what": what, "cases": [], "table3": []}
-    for i, (fam, det, launch, tilt) in enumerate(cases):
-        extra = QUICK_ONCE if (quick and i == 0) else ()
-        out["cases"].append(run_case(fam, det, launch, tilt, warm, scored, labels + extra, log=log))
+    for fam, det, launch, tilt in cases:
+        out["cases"].append(run_case(fam, det, launch, tilt, warm, scored, labels, log=log))
         _save(out, out_dir, t_start)                                   # partial results
     for det in ("polar", "cartesian"):
         c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, crb_samples=50,
