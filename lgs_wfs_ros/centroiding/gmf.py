@@ -6,9 +6,12 @@ efficiency as the spot moves away from it (the CMF's 1.14-1.3x the Cramer-Rao bo
 positions ``((kx, ky) - half) spacing`` px (default 5 x 5, 0.5 px apart, +-1 px), each
 against the reference spot the pupil calibration (:mod:`.pupil`) renders at that position,
 with its exact derivatives (central differences of renders). Per frame, the calibrated CoG
-(the plain CoG minus the bias of the calibrated profile) picks the nearest position, so the
-spot is within a quarter pixel per axis of its filter's reference (beyond the grid, at the
-nearest edge position), and that filter measures the rest:
+(the plain CoG minus the bias of the calibrated profile) picks the nearest position, that
+filter measures the shift, and (``picks`` 2, the default) the position nearest to that
+measurement is picked again and its filter, where it is another, measures it instead, so
+the spot is within about a quarter pixel per axis of its filter's reference even where the
+calibrated CoG is off by more (spots truncated by the field; beyond the grid, the nearest
+edge position). Each filter gives
 
     s = g + R_g (x - b) / (sum(x - b))
 
@@ -19,12 +22,12 @@ squared, floored at ``var_floor``. Spots are separable or not: the same code run
 and cartesian pixels.
 
 Cost: per frame one compiled pass per block (the CoG's moments, then the chosen filter's
-two rows; :func:`.kernels.grid_filter`) and the calibration's accumulation; at each refit
-5 renders per position (125 for the full pupil at 5 x 5, through the simulator's compiled
-renderer: a refit takes ~1.2 s polar, ~3.2 s cartesian) and the filters, 72 MB in
-int16 for the full pupil (:func:`quantize`; one position's rows, 1 kB a block, are read each
-frame). Refits
-can run in a background thread (``pupil_async``), as for every pupil-calibrated estimator.
+two rows, and a second filter's where the second pick moves; :func:`.kernels.grid_filter`)
+and the calibration's accumulation; at each refit 5 renders per position (125 for the full
+pupil at 5 x 5, through the simulator's compiled renderer: a refit takes ~1.2 s polar,
+~3.2 s cartesian) and the filters, 72 MB in int16 for the full pupil (:func:`quantize`; one
+or two positions' rows, 1 kB a block each, are read each frame). Refits can run in a
+background thread (``pupil_async``), as for every pupil-calibrated estimator.
 """
 
 from __future__ import annotations
@@ -48,6 +51,8 @@ class GMF(TabledCoG):
     Options:
         spacing_px: distance between grid positions, px (0.5).
         grid: positions per axis, odd (5: +-1 px at the default spacing).
+        picks: filter choices per block (2): 1 uses the position nearest the calibrated CoG;
+            2 (3) picks again by that filter's measurement (once more).
         background: counts per pixel (default ``sensor.background_e``), subtracted and in
             the weighting.
         read_noise_e: read noise in the weighting, e- (default the sensor's).
@@ -57,7 +62,7 @@ class GMF(TabledCoG):
     """
 
     name = "gmf"
-    _public = ("background", "spacing_px", "grid", "read_noise_e", "var_floor",
+    _public = ("background", "spacing_px", "grid", "picks", "read_noise_e", "var_floor",
                *CoG._allowed[2:])
     _allowed = (*_public, "bias")            # CoG's, which this sets to "pupil" itself
 
@@ -70,13 +75,17 @@ class GMF(TabledCoG):
         if spacing * (grid // 2) > 0.5 * sensor.pixels:
             raise ValueError(f"gmf: the grid reaches {spacing * (grid // 2)} px, beyond half "
                              f"the field ({0.5 * sensor.pixels} px)")
+        picks = number("picks", options.pop("picks", 2), minimum=1, integer=True)
+        if picks > 3:
+            raise ValueError(f"gmf: picks must be 1, 2 or 3, got {picks}")
         rn = number("read_noise_e", options.pop("read_noise_e", float(sensor.read_noise_e)),
                     minimum=0)
         floor = number("var_floor", options.pop("var_floor", 1.0), minimum=0, strict=True)
         super().__init__(sensor, **{**options, "bias": "pupil"})
-        self.options.update(spacing_px=spacing, grid=grid, read_noise_e=rn, var_floor=floor)
+        self.options.update(spacing_px=spacing, grid=grid, picks=picks, read_noise_e=rn,
+                            var_floor=floor)
         self.options.pop("bias", None)
-        self.spacing, self.half = spacing, grid // 2
+        self.spacing, self.half, self.picks = spacing, grid // 2, picks
         self.read_noise, self.var_floor = rn, floor
         self.positions = (np.arange(grid) - self.half) * spacing          # (grid,) px
         self._start_tables()
@@ -150,7 +159,7 @@ class GMF(TabledCoG):
         if kernels.fits(data, self.sensor.frame_shape):
             out, index = kernels.grid_filter(data, kernels.origins(self), self.p, self._bias,
                                              self._filters, self._scale, self._rsum,
-                                             self.positions, self.background)
+                                             self.positions, self.background, self.picks)
             seen = self.pupil.observe_frame(data)
         else:
             flat = self.float_stack(data).reshape(self.n, -1)
@@ -170,20 +179,23 @@ class GMF(TabledCoG):
         pos = np.arange(self.p) - self.centre
         st = flat.reshape(self.n, self.p, self.p)
         with np.errstate(divide="ignore", invalid="ignore"):
-            cog = np.stack([st.sum(axis=1) @ pos, st.sum(axis=2) @ pos], 1) / flux[:, None]
+            est = np.stack([st.sum(axis=1) @ pos, st.sum(axis=2) @ pos], 1) / flux[:, None]
+        est = np.nan_to_num(est) - self._bias
         side = 2 * self.half + 1
-        k = np.floor((np.nan_to_num(cog) - self._bias) / self.spacing + 0.5).astype(np.int64)
-        k = np.clip(k + self.half, 0, side - 1)
-        index = k[:, 1] * side + k[:, 0]
         n = np.arange(self.n)
-        r = self._filters[index, n] * self._scale[index, n][..., None]          # (n, 2, pp)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out = self.positions[k] + (np.einsum("nkp,np->nk", r, flat)
-                                       - self.background * self._rsum[index, n]) / flux[:, None]
+        for _ in range(self.picks):            # a block whose position stays gets the same
+            k = np.floor(est / self.spacing + 0.5).astype(np.int64)
+            k = np.clip(k + self.half, 0, side - 1)
+            index = k[:, 1] * side + k[:, 0]
+            r = self._filters[index, n] * self._scale[index, n][..., None]      # (n, 2, pp)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                est = self.positions[k] + (np.einsum("nkp,np->nk", r, flat)
+                                           - self.background * self._rsum[index, n]) / flux[:, None]
+            est = np.nan_to_num(est)
         bad = ~(np.isfinite(tot) & (tot > 0) & (flux > 0))
-        out[bad] = np.nan
+        est[bad] = np.nan
         index[bad] = -1
-        return out, index
+        return est, index
 
     def describe(self) -> dict:
         d = super().describe()

@@ -348,11 +348,12 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
 
 
 def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, background,
-                      out, index):
+                      picks, out, index):
     # per block: the CoG moments (exact int32 row sums), the calibrated CoG (minus bias) as
-    # the grid position nearest to the spot, then that position's two filter rows applied to
-    # the block (int16 rows, exact integer sums, then their scales):
-    # out[b] = position + (R x - background R 1) / flux
+    # the first estimate; then up to `picks` times: the grid position nearest to the
+    # estimate, that position's two filter rows applied to the block (int16 rows, exact
+    # integer sums, then their scales), out[b] = position + (R x - background R 1) / flux,
+    # which is the next estimate (stop when the position does not change)
     n = origins.shape[0]
     c = (p - 1) / 2.0
     side = positions.shape[0]
@@ -369,25 +370,31 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
             index[b] = -1
             continue
         # moments about the centre do not see a uniform background; the flux does
-        kx = min(max(int(np.floor(((sx - c * s) / flux - bias[b, 0]) / spacing + 0.5)) + half, 0),
-                 side - 1)
-        ky = min(max(int(np.floor(((sy - c * s) / flux - bias[b, 1]) / spacing + 0.5)) + half, 0),
-                 side - 1)
-        g = ky * side + kx
+        ex = (sx - c * s) / flux - bias[b, 0]
+        ey = (sy - c * s) / flux - bias[b, 1]
+        g = -1
+        for _ in range(picks):
+            kx = min(max(int(np.floor(ex / spacing + 0.5)) + half, 0), side - 1)
+            ky = min(max(int(np.floor(ey / spacing + 0.5)) + half, 0), side - 1)
+            if ky * side + kx == g:
+                break
+            g = ky * side + kx
+            w0 = filters[g, b, 0]
+            w1 = filters[g, b, 1]
+            a0 = np.int64(0)
+            a1 = np.int64(0)
+            for i in range(p):
+                row = frame[r0 + i, c0:c0 + p]
+                o = i * p
+                for j in range(p):
+                    x = np.int64(row[j])
+                    a0 += np.int64(w0[o + j]) * x
+                    a1 += np.int64(w1[o + j]) * x
+            ex = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
+            ey = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
         index[b] = g
-        w0 = filters[g, b, 0]
-        w1 = filters[g, b, 1]
-        a0 = np.int64(0)
-        a1 = np.int64(0)
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            o = i * p
-            for j in range(p):
-                x = np.int64(row[j])
-                a0 += np.int64(w0[o + j]) * x
-                a1 += np.int64(w1[o + j]) * x
-        out[b, 0] = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
-        out[b, 1] = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
+        out[b, 0] = ex
+        out[b, 1] = ey
 
 
 def _lag_product_impl(xw, refw, p, m, tx, ty):
@@ -618,15 +625,18 @@ def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
 
 def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray,
                 filters: np.ndarray, scale: np.ndarray, rsum: np.ndarray,
-                positions: np.ndarray, background: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                positions: np.ndarray, background: float = 0.0,
+                picks: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Slopes of the grid matched filter (:class:`.gmf.GMF`), one compiled pass per valid
     block of an integer frame (see :func:`fits`): the filter of the grid position nearest to
-    the block's calibrated CoG (its CoG minus ``bias (n, 2)``, block axes) is applied to it.
+    the block's calibrated CoG (its CoG minus ``bias (n, 2)``, block axes) is applied to it;
+    with ``picks`` 2 (3) the position nearest to that estimate is chosen again and, where it
+    differs, its filter applied instead (once more).
     ``filters (G*G, n, 2, p*p)`` int16 C-contiguous, the rows ``scale (G*G, n, 2)`` times
     them (position ``ky G + kx`` at ``(positions[kx], positions[ky])``, ``positions (G,)``
     px evenly spaced), ``rsum (G*G, n, 2)`` the rows' sums, ``background`` counts per pixel.
     Returns ``(slopes (n, 2)`` px, block axes, NaN for a block without light, ``index
-    (n,)``: the position used, -1 for none)."""
+    (n,)``: the position last used, -1 for none)."""
     n = origins.shape[0]
     if filters.dtype != np.int16 or not filters.flags.c_contiguous:
         raise ValueError("grid_filter: filters must be C-contiguous int16")
@@ -635,7 +645,8 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
     _grid_filter(frame, origins, int(p), np.ascontiguousarray(bias, dtype=np.float64), filters,
                  np.ascontiguousarray(scale, dtype=np.float64),
                  np.ascontiguousarray(rsum, dtype=np.float64),
-                 np.ascontiguousarray(positions, dtype=np.float64), float(background), out, index)
+                 np.ascontiguousarray(positions, dtype=np.float64), float(background),
+                 int(picks), out, index)
     return out, index
 
 

@@ -171,6 +171,9 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                          "positions, pixels.", {"low": 0.05, "high": 4.0}),
                  ("grid", 5, "Reference positions per axis, odd (5: +-1 px at 0.5 px).",
                   {"low": 1, "high": 15}),
+                 ("picks", 2, "Filter choices per block: 1 takes the position nearest the "
+                  "calibrated CoG; 2 picks again by that filter's measurement (3: once more).",
+                  {"low": 1, "high": 3}),
                  ("background", -1.0, "Background subtracted per pixel and in the weighting, "
                   "counts (-1: the sensor's).", {**_SENSOR, "high": 1e6}),
                  ("read_noise_e", -1.0, "Read noise in the weighting, e- (-1: the sensor's).",
