@@ -83,8 +83,8 @@ def full_cases():
 
 
 def quick_cases():
-    out = [(fam, "polar", 0.0, "ar1") for fam in sodium.FAMILIES]
-    out += [("measured", "cartesian", 0.0, "ar1"), ("measured", "polar", SIDE_LAUNCH_M, "ar1"),
+    out = [(fam, det, 0.0, "ar1") for det in ("polar", "cartesian") for fam in sodium.FAMILIES]
+    out += [("measured", "polar", SIDE_LAUNCH_M, "ar1"),
             ("measured", "cartesian", SIDE_LAUNCH_M, "ar1"),
             ("measured", "polar", 0.0, "frozen_inf"), ("measured", "polar", 0.0, "frozen_30")]
     return out
