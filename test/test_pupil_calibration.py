@@ -89,6 +89,35 @@ def test_noisy_tilted_frames_converge_and_follow_the_average():
     assert cal.fits == 0 and np.allclose(cal.light, cal.prior)
 
 
+def test_trend_follows_a_drifting_profile_without_lag():
+    """A layer rising at 1 km/s (noise-free, no tilt; refits every 0.1 s frame, time
+    constant 0.2 s): the exponential average alone fits it ~256 m behind the frame it will
+    serve (its lag, 0.256 s); with ``trend`` the two averages' drift puts it there to 20 m.
+    (A wrong sign, a horizon half a period short or one average used twice: 50 m or more.)"""
+    s = Sensor(n_subaps=16, subap_pitch_m=1.0, detector="polar", frame_rate_hz=10.0)
+    lay = geometry.layout(s)
+    h = np.linspace(70e3, 120e3, 2001)
+
+    def layer(k):                                   # frame k's profile (centre at 0.1 k s)
+        return sodium.gaussian_profile(h, 90e3 + 1000.0 * k / 10.0, 8e3)
+    frames = []
+    for k in range(25):
+        img, _ = SpotModel(s, lay.r_m, lay.e, h, layer(k), max_shift_px=3.5).images(
+            np.zeros((lay.n_valid, 2)))
+        frames.append(img.reshape(lay.n_valid, -1) * 1000.0)
+    served = sodium.harmonic_altitude(h, layer(25))  # the next frame, which the refit serves
+    error = {}
+    for trend in (False, True):
+        cal = PupilCalibration(s, period=1, time_constant_s=0.2, trend=trend)
+        for f in frames:
+            cal.observe(f)
+        error[trend] = sodium.harmonic_altitude(*cal.profile) - served
+    assert -300.0 < error[False] < -200.0
+    assert abs(error[True]) < 20.0
+    with pytest.raises(ValueError, match="pupil_trend"):
+        PupilCalibration(s, trend="yes")
+
+
 def test_projection_is_linear_and_keeps_light():
     s = SMALL.replace(detector="cartesian")
     lay = geometry.layout(s)

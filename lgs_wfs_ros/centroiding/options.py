@@ -76,6 +76,9 @@ _PUPIL = (
      "the period end that started it, waiting then if it is late (reproducible: a replay gives "
      "the live numbers), e.g. 700 = 1 s at 700 Hz; 0: whenever it is ready.",
      {"low": 0, "high": 1000000}),
+    ("pupil_trend", False, "Extrapolate the profile estimate to the frames it will serve, from "
+     "its drift (two averages, time constants T and 2T): no lag behind a profile evolving "
+     "steadily; false: the exponential average itself (lags it by ~T)."),
 )
 _HISTORY = (
     ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "

@@ -84,11 +84,14 @@ class PupilCalibration:
     def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.5, stride: int = 1,
                  nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
                  max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False,
-                 lag: int = 0):
+                 lag: int = 0, trend: bool = False):
         self.sensor = sensor
         if not isinstance(asynchronous, (bool, np.bool_)):
             raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
         self.asynchronous = bool(asynchronous)
+        if not isinstance(trend, (bool, np.bool_)):
+            raise ValueError(f"option pupil_trend must be true or false, got {trend!r}")
+        self.trend = bool(trend)
         self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
         self.payload = None
@@ -132,6 +135,7 @@ class PupilCalibration:
         self._count = np.zeros(self.n)
         self._frames = 0
         self.state = None
+        self.state_slow = None
         self.flux = None
         self._state_ok = np.zeros(self.n, dtype=bool)
         self.light = self.prior.copy()
@@ -287,7 +291,7 @@ class PupilCalibration:
         """Start a background refit on a snapshot: a copy of the fit state works on the
         taken accumulators, then ``prepare`` (if set) runs on it in the same thread."""
         clone = copy.copy(self)
-        for name in ("state", "flux", "_state_ok", "light"):
+        for name in ("state", "state_slow", "flux", "_state_ok", "light"):
             value = getattr(self, name)
             setattr(clone, name, None if value is None else value.copy())
         clone._pool = clone._job = None
@@ -342,23 +346,47 @@ class PupilCalibration:
         good &= np.isfinite(tot) & (tot > 0)
         z = np.where(good[:, None], proj / np.where(good, tot, 1.0)[:, None], 0.0)
         self._update_blur(mean, good)
+        a, a_slow = self._decays(frames)
         if self.state is None:
             self.state, self.flux = z, np.where(good, tot, self.sensor.photons)
+            self.state_slow = z.copy()
         else:
-            rate = self.sensor.frame_rate_hz
-            a = math.exp(-frames / (self.time_constant_s * rate)) if self.time_constant_s > 0 else 0.0
             fresh = good & ~self._state_ok
             blend = good & self._state_ok
             self.state[blend] = a * self.state[blend] + (1 - a) * z[blend]
             self.state[fresh] = z[fresh]
+            self.state_slow[blend] = a_slow * self.state_slow[blend] + (1 - a_slow) * z[blend]
+            self.state_slow[fresh] = z[fresh]
             self.flux[blend] = a * self.flux[blend] + (1 - a) * tot[blend]
             self.flux[fresh] = tot[fresh]
         self._state_ok |= good
-        self.light = self.solve(self.state, self._state_ok, self.light)
+        self.light = self.solve(self._predicted(frames, a, a_slow), self._state_ok, self.light)
         self.fits += 1
         self.version += 1
         self._refs = None
         return True
+
+    def _decays(self, frames: int) -> tuple[float, float]:
+        """Per-refit weights of the old average: time constant ``tau`` and ``2 tau``."""
+        if self.time_constant_s <= 0:
+            return 0.0, 0.0
+        steps = frames / (self.time_constant_s * self.sensor.frame_rate_hz)
+        return math.exp(-steps), math.exp(-steps / 2)
+
+    def _predicted(self, frames: int, a: float, a_slow: float) -> np.ndarray:
+        """The projected means the fit uses: the average itself, or (``trend``) extrapolated
+        to the middle of the period the refit will serve. For a profile drifting linearly,
+        an average over periods of ``P`` s that keeps ``a`` of itself each period lags the
+        period's end by ``L = P/2 + P a/(1-a)``; two averages (``tau``, ``2 tau``) give the
+        drift, ``(state - slow) / (L_slow - L)``, and the profile at the period end plus
+        ``lag`` frames plus ``P/2`` is ``state + drift (L + lag + P/2)``."""
+        if not self.trend or not 0 < a < 1:
+            return self.state
+        period = frames / self.sensor.frame_rate_hz
+        lag = period / 2 + period * a / (1 - a)
+        lag_slow = period / 2 + period * a_slow / (1 - a_slow)
+        ahead = lag + self.lag / self.sensor.frame_rate_hz + period / 2
+        return self.state + (self.state - self.state_slow) * (ahead / (lag_slow - lag))
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
@@ -477,12 +505,12 @@ class PupilCalibration:
 
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
-_FIT_STATE = ("state", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
+_FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
               "_basis", "_colsum", "_gram", "_rough", "_spread")
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1,
-                   "pupil_async": False, "pupil_async_lag": 0}
+                   "pupil_async": False, "pupil_async_lag": 0, "pupil_trend": False}
 
 
 def from_options(sensor, options: dict, background: float) -> PupilCalibration:
@@ -491,7 +519,7 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
     return PupilCalibration(sensor, period=o["pupil_period"],
                             time_constant_s=o["pupil_time_constant_s"], stride=o["pupil_stride"],
                             background=background, asynchronous=o["pupil_async"],
-                            lag=o["pupil_async_lag"])
+                            lag=o["pupil_async_lag"], trend=o["pupil_trend"])
 
 
 __all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
