@@ -131,8 +131,9 @@ class CMF(Centroider):
             frame) instead of inline at the end of each period (False); with
             ``pupil_async_lag`` N > 0 each refit is installed exactly N frames after it
             started (waited for if late): reproducible.
-        pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration's refit
-            period (frames), memory (s) and accumulation stride (frames).
+        pupil_period, pupil_time_constant_s, pupil_stride, pupil_trend: the pupil
+            calibration's refit period (frames), memory (s), accumulation stride (frames)
+            and drift extrapolation (:class:`.pupil.PupilCalibration`).
         history: frames in the history mean (5).
         include_current: the measured frame is part of the history (True, paper).
         update_period: reference/derivatives refreshed every N frames (1).

@@ -30,8 +30,9 @@ class CoG(Centroider):
             CoG of each subaperture's reference spot rendered from the sodium profile
             estimated from the whole pupil (:mod:`.pupil`), i.e. the bias the profile
             implies, refreshed every ``pupil_period`` frames.
-        pupil_period, pupil_time_constant_s, pupil_stride: the calibration's refit period
-            (frames), memory (s) and accumulation stride (frames), for ``bias="pupil"``.
+        pupil_period, pupil_time_constant_s, pupil_stride, pupil_trend: the calibration's
+            refit period (frames), memory (s), accumulation stride (frames) and drift
+            extrapolation (:class:`.pupil.PupilCalibration`), for ``bias="pupil"``.
     """
 
     name = "cog"

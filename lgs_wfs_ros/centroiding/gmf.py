@@ -57,7 +57,8 @@ class GMF(TabledCoG):
             the weighting.
         read_noise_e: read noise in the weighting, e- (default the sensor's).
         var_floor: smallest pixel variance in the weighting, counts^2 (1.0).
-        pupil_period, pupil_time_constant_s, pupil_stride, pupil_async, pupil_async_lag:
+        pupil_period, pupil_time_constant_s, pupil_stride, pupil_async, pupil_async_lag,
+        pupil_trend:
             the pupil calibration, as for ``cog`` with ``bias=pupil``.
     """
 

@@ -107,7 +107,8 @@ class ML(TabledCoG):
             returned.
         background: counts per pixel (default ``sensor.background_e``); must be 0: the
             marginals of a uniform background are not separable (refused otherwise).
-        pupil_period, pupil_time_constant_s, pupil_stride, pupil_async, pupil_async_lag:
+        pupil_period, pupil_time_constant_s, pupil_stride, pupil_async, pupil_async_lag,
+        pupil_trend:
             the pupil calibration, as for ``cog`` with ``bias=pupil``.
     """
 

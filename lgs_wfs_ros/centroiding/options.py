@@ -65,8 +65,8 @@ _PUPIL = (
     ("pupil_period", 140, "Frames between refits of the sodium profile estimated from the whole "
      "pupil (and of what it implies: references, bias), e.g. 140 = 0.2 s at 700 Hz.",
      {"low": 1, "high": 1000000}),
-    ("pupil_time_constant_s", 0.5, "Memory of the pupil profile estimate, seconds (exponential "
-     "average of the mean images; 0: each period alone), e.g. 0.5.", {"low": 0.0, "high": 3600.0}),
+    ("pupil_time_constant_s", 0.3, "Memory of the pupil profile estimate, seconds (exponential "
+     "average of the mean images; 0: each period alone), e.g. 0.3.", {"low": 0.0, "high": 3600.0}),
     ("pupil_stride", 1, "Frames between frames added to the pupil calibration's mean images "
      "(1: every frame), e.g. 2 halves its per-frame cost.", {"low": 1, "high": 10000}),
     ("pupil_async", False, "Refit in a background thread and swap the new references in at a "
@@ -76,9 +76,10 @@ _PUPIL = (
      "the period end that started it, waiting then if it is late (reproducible: a replay gives "
      "the live numbers), e.g. 700 = 1 s at 700 Hz; 0: whenever it is ready.",
      {"low": 0, "high": 1000000}),
-    ("pupil_trend", False, "Extrapolate the profile estimate to the frames it will serve, from "
+    ("pupil_trend", True, "Extrapolate the profile estimate to the frames it will serve, from "
      "its drift (two averages, time constants T and 2T): no lag behind a profile evolving "
-     "steadily; false: the exponential average itself (lags it by ~T)."),
+     "steadily; false: the exponential average itself (lags it by ~T, steadier on a steady "
+     "profile)."),
 )
 _HISTORY = (
     ("reference", "pupil", "Where the reference image comes from: the spot of the sodium profile "

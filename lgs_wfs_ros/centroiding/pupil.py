@@ -79,12 +79,16 @@ class PupilCalibration:
             period end that started it, waiting for it then if it is late: reproducible
             frame for frame (a replay gives the live numbers) and no stall as long as a
             refit takes less than ``lag`` frames. 0: install whenever it is ready.
+        trend: fit the average extrapolated, from the drift between it and a second
+            average of time constant ``2 time_constant_s``, to the middle of the period the
+            refit will serve (True, default: no lag behind a steadily evolving profile, a
+            little more focus noise on a steady one); False: the average itself.
     """
 
-    def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.5, stride: int = 1,
+    def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.3, stride: int = 1,
                  nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
                  max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False,
-                 lag: int = 0, trend: bool = False):
+                 lag: int = 0, trend: bool = True):
         self.sensor = sensor
         if not isinstance(asynchronous, (bool, np.bool_)):
             raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
@@ -509,8 +513,8 @@ _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "vers
               "_basis", "_colsum", "_gram", "_rough", "_spread")
 
 # Options every estimator that uses the calibration takes (names as in options.py).
-OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.5, "pupil_stride": 1,
-                   "pupil_async": False, "pupil_async_lag": 0, "pupil_trend": False}
+OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.3, "pupil_stride": 1,
+                   "pupil_async": False, "pupil_async_lag": 0, "pupil_trend": True}
 
 
 def from_options(sensor, options: dict, background: float) -> PupilCalibration:
