@@ -24,7 +24,10 @@ Plus the paper's Table 3 case: one subaperture (r = 14.75 m), the measured profi
 profile 66 on (the held-out block), frozen flow at 10 m/s, 1000 photons.
 
 Run: ``python benchmarks/bench_accuracy.py [--quick]`` (writes ``benchmarks/accuracy.json``
-and ``benchmarks/accuracy.md``); ``benchmarks/run.py`` runs it too.
+and ``benchmarks/accuracy.md``); ``benchmarks/run.py`` runs it too. ``--long``: the quick
+mode's cases at the full mode's 700 + 700 frames, for the estimators the "done when" criteria
+name (``LONG_ESTIMATORS``), no Table 3; writes ``accuracy_long.json`` / ``accuracy_long.md``
+and leaves the docs alone. ``--jobs N`` runs N cases at a time (one process each).
 """
 
 from __future__ import annotations
@@ -66,6 +69,8 @@ ESTIMATORS = {
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
 }
 QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "gmf", "corr", "ann_pupil", "ann_marg")
+#: the estimators issue 14's and 15's "done when" name, for --long
+LONG_ESTIMATORS = ("cog", "cog_pupil", "cmf", "ml", "gmf", "ann_marg")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 
@@ -323,9 +328,17 @@ def markdown(result: dict, title: bool = True) -> str:
 PAPER_T3 = {"polar": 88.06 / 237.31, "cartesian": 122.78 / 236.82}
 
 
-def main(quick: bool = False, out_dir: Path = HERE, log=print) -> dict:
+def _case(args):
+    """``run_case`` of one ``(family, detector, launch, tilts, warm, scored, labels)`` (a pool task)."""
+    return run_case(*args)
+
+
+def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = False,
+         jobs: int = 1) -> dict:
     t_start = time.time()
-    if quick:
+    if long:
+        warm, scored, cases, labels, t3_frames = 700, 700, quick_cases(), LONG_ESTIMATORS, 0
+    elif quick:
         warm, scored, cases, labels, t3_frames = 210, 140, quick_cases(), QUICK_ESTIMATORS, 1400
     else:
         warm, scored, cases, labels, t3_frames = 700, 700, full_cases(), tuple(ESTIMATORS), 7000
@@ -335,10 +348,22 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print) -> dict:
             f"{AR1_RMS_PX} px rms per axis; estimators built with options.build (the node's "
             f"defaults) plus: " + "; ".join(f"{lb} = {ESTIMATORS[lb][0]} {ESTIMATORS[lb][1] or ''}"
                                               for lb in labels))
-    out = {"mode": "quick" if quick else "full", "what": what, "cases": [], "table3": []}
-    for fam, det, launch, tilt in cases:
-        out["cases"].append(run_case(fam, det, launch, tilt, warm, scored, labels, log=log))
-        _save(out, out_dir, t_start)                                   # partial results
+    mode = "long" if long else "quick" if quick else "full"
+    out = {"mode": mode, "what": what, "cases": [], "table3": []}
+    name = "accuracy_long" if long else "accuracy"
+    tasks = [(fam, det, launch, tilt, warm, scored, labels) for fam, det, launch, tilt in cases]
+    if jobs > 1:
+        import multiprocessing
+        with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+            for c in pool.imap(_case, tasks):
+                out["cases"].append(c)
+                _save(out, out_dir, t_start, name)                     # partial results
+    else:
+        for t in tasks:
+            out["cases"].append(run_case(*t, log=log))
+            _save(out, out_dir, t_start, name)
+    if long:
+        return out
     for det in ("polar", "cartesian"):
         c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, crb_samples=50,
                      log=log, single=True)
@@ -349,7 +374,7 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print) -> dict:
     return out
 
 
-def _save(out: dict, out_dir: Path, t_start: float) -> None:
+def _save(out: dict, out_dir: Path, t_start: float, name: str = "accuracy") -> None:
     out["seconds"] = round(time.time() - t_start, 1)
     cpu = {}
     for c in out["cases"]:
@@ -362,8 +387,8 @@ def _save(out: dict, out_dir: Path, t_start: float) -> None:
     out["cpu_ms"] = {lb: {"per_frame": float(np.median(v["per_frame"])),
                           "refit": float(np.median(v["refit"])) if v["refit"] else None,
                           "refits": v["refits"]} for lb, v in cpu.items()}
-    (out_dir / "accuracy.json").write_text(json.dumps(out, indent=1) + "\n")
-    (out_dir / "accuracy.md").write_text(markdown(out))
+    (out_dir / f"{name}.json").write_text(json.dumps(out, indent=1) + "\n")
+    (out_dir / f"{name}.md").write_text(markdown(out))
 
 
 DOC = HERE.parent / "docs" / "accuracy.md"
@@ -451,6 +476,10 @@ def record(label: str, model: str, res: dict) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames and cases (minutes)")
+    ap.add_argument("--long", action="store_true",
+                    help="the quick cases at 700 + 700 frames for the 'done when' estimators "
+                         "(accuracy_long.json / .md; the docs are left alone)")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run at a time (processes)")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
     ap.add_argument("--record", default="", metavar="LABEL",
@@ -470,5 +499,5 @@ if __name__ == "__main__":
             allres.setdefault("areas", {})["accuracy"] = {"rows": rows(res), "seconds": res["seconds"]}
             results.write_text(json.dumps(allres, indent=2) + "\n")
     else:
-        main(args.quick)
-    print((HERE / "accuracy.md").read_text())
+        main(args.quick, long=args.long, jobs=args.jobs)
+    print((HERE / ("accuracy_long.md" if args.long else "accuracy.md")).read_text())
