@@ -201,7 +201,9 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
         time.sleep(2.0)                                   # the last frames through
         g.stop()
         cen = final_counts(g.log(cen_key))
-        src_sent = final_counts(g.log(src_key)).get("frame")      # the player says
+        src_counts = final_counts(g.log(src_key))
+        src_sent = src_counts.get("frame")                        # the player says
+        src_truths = src_counts.get("true_slopes")
         reasons = re.findall(r"\(last: (.*)\)", g.log(cen_key))
     reader = bags.BagReader(out)
     log = {t: {} for t in ("/wfs/true_slopes", f"/{alg}/slopes")}
@@ -213,6 +215,9 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
     # frames sent: the player's own count; the simulator's from its truths (each frame's
     # truth goes out after the frame, and the recorder keeps every truth it receives)
     sent = src_sent if src_sent is not None else len(truths)
+    # truths the source published (a player stopped between a frame and its truth sent one
+    # truth fewer than frames: not a loss at the recorder)
+    truths_sent = src_truths if src_truths is not None else sent
     tt = sorted(truths.values())
     sent_hz = (len(tt) - 1) / ((tt[-1] - tt[0]) * 1e-9) if len(tt) > 1 else float("nan")
     st = sorted(slopes.values())
@@ -231,7 +236,7 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
             "sent_hz": round(sent_hz, 1),
             "lost": {"source": max(0, offered - sent), "transport": sent - taken,
                      "centroider": taken - published, "recorder": published - len(slopes),
-                     "recorder_truths": sent - len(truths)},
+                     "recorder_truths": truths_sent - len(truths)},
             "latency_ms_p50": percentile_ms(lat, 50), "latency_ms_p99": percentile_ms(lat, 99),
             "cpu_ms_per_frame": cpu_ms,
             "cpu_cores": {k: round(v / span_s, 2) for k, v in cpu.items()},

@@ -325,3 +325,19 @@ def test_pushed_dither_images_give_exact_gain_on_the_undersampled_core():
     assert "pushed dithered" in c.describe()["derivative"]
     with pytest.raises(ValueError, match="dither images"):
         c.push_dither(dith[:2])
+
+
+def test_a_model_weighted_filter_is_built_with_the_centroider_not_on_its_first_frame(monkeypatch):
+    """A live node builds its centroider when the sensor description arrives; the filter
+    (~0.2 s for the full pupil) must be ready then, not solved on the first frame."""
+    from lgs_wfs_ros.centroiding import cmf as cmf_module
+
+    sensor = Sensor(diameter_m=4.0, obstruction_m=0.5, n_subaps=8)
+    cmf = make_centroider("cmf", sensor, reference="model", weighting="model", linearize=False)
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("a filter solved on the frame path")
+
+    monkeypatch.setattr(cmf_module, "solve_filter", no_solve)
+    frame = np.random.default_rng(1).poisson(30, sensor.frame_shape).astype(np.uint16)
+    assert np.isfinite(cmf.centroid(frame)).all()

@@ -133,7 +133,7 @@ def test_a_refit_rebuilds_the_filters_for_the_next_frame():
 
 
 def test_quantized_rows_are_the_filters_to_half_a_step():
-    from lgs_wfs_ros.centroiding.gmf import quantize
+    from lgs_wfs_ros.centroiding.kernels import quantize
     r = np.random.default_rng(8).normal(0.0, 1e-3, (3, 5, 2, 256))
     r[1, 2, 0] = 0.0                                          # an empty row stays empty
     q, scale = quantize(r)

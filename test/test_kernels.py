@@ -74,6 +74,37 @@ def test_filter_flux_equals_the_contraction_with_a_row_of_ones():
         kernels.filter_flux(frame, kernels.block_origins(lay), np.concatenate([w, ones], 1))
 
 
+def test_filter_flux_with_int16_rows_sums_the_quantized_filter_exactly():
+    """int16 rows with one scale each (what the CMF reads a frame): the sums are the exact
+    products of the integer rows and pixels, scaled; the flux is the plain pixel sum."""
+    sensor = SENSORS[0]
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(10)
+    r = rng.normal(size=(lay.n_valid, 2, sensor.pixels ** 2))
+    q, scale = kernels.quantize(r)
+    assert q.dtype == np.int16 and np.abs(q).max() == 32767
+    np.testing.assert_allclose(q * scale[..., None], r, atol=0.51 * scale.max())
+    frame = _frame(sensor, 11, high=True)
+    stack = geometry.frame_to_stack(frame, lay).reshape(lay.n_valid, -1).astype(np.int64)
+    exact = np.einsum("nkp,np->nk", q.astype(np.int64), stack)           # integers
+    got = kernels.filter_flux(frame, kernels.block_origins(lay), q, scale=scale)
+    np.testing.assert_allclose(got[:, :2], exact * scale, rtol=1e-15)
+    np.testing.assert_array_equal(got[:, 2], stack.sum(axis=1))
+    with pytest.raises(ValueError, match="scale"):
+        kernels.filter_flux(frame, kernels.block_origins(lay), q)
+
+
+def test_warm_up_compiles_the_frame_kernels_for_read_only_frames():
+    """Shared-memory frames are read-only views: another numba signature, which must be
+    compiled by warm_up, not on a live node's first frame."""
+    kernels.warm_up()
+    for disp in (kernels._cog_moments, kernels._filter_flux, kernels._filter_flux_q,
+                 kernels._grid_filter, kernels._ml_search, kernels._block_marginals,
+                 kernels._corr_peak):
+        frames = {sig[0].mutable for sig in disp.signatures}
+        assert frames >= {True, False}, disp
+
+
 def test_cmf_model_with_the_kernel_equals_cmf_without(monkeypatch):
     sensor = SENSORS[1]
     cmf = make_centroider("cmf", sensor, weighting="model", reference="model")

@@ -192,3 +192,44 @@ def test_an_algorithm_fault_costs_one_frame_not_the_node(ros):
     assert wait_for(lambda: 20 in rig.slopes, timeout=10)
     assert 10 not in rig.slopes
     assert node.counters.rejected == 1 and "simulated" in node.counters.last_reason
+
+
+def test_a_burst_of_full_frames_is_published_frame_by_frame(ros):
+    """Full frames that queued up (a source that stalled, then caught up) are each published
+    as soon as they are centroided, not after the whole burst; small frames of a burst are
+    centroided in one call."""
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+
+    node = ros.add(CentroiderNode(context=ros.context))
+    events = []
+
+    class Algorithm:
+        name = "stub"
+
+        def __init__(self, n):
+            self.n = n
+
+        def centroid(self, image):
+            events.append("centroid")
+            return np.zeros((self.n, 2))
+
+        def centroid_many(self, images):
+            events.append(f"centroid_many {len(images)}")
+            return np.zeros((len(images), self.n, 2))
+
+    class Publisher:
+        def publish(self, cdr):
+            events.append("publish")
+
+    node._slopes_pub = Publisher()
+    from lgs_wfs_ros.sensor import Sensor
+
+    for sensor, want in ((SMALL, ["centroid", "publish"] * 3),                  # 128 x 128
+                         (Sensor.paper_single("cartesian"), ["centroid_many 3"] + ["publish"] * 3)):
+        events.clear()
+        with node._lock:
+            node.sensor, node.layout = sensor, geometry.layout(sensor)
+            node.centroider = Algorithm(node.layout.n_valid)
+        frames = [(k, np.zeros(sensor.frame_shape, np.uint16)) for k in (1, 2, 3)]
+        node._centroid_and_publish(frames)
+        assert events == want

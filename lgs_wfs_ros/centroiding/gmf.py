@@ -25,7 +25,8 @@ Cost: per frame one compiled pass per block (the CoG's moments, then the chosen 
 two rows, and a second filter's where the second pick moves; :func:`.kernels.grid_filter`)
 and the calibration's accumulation; at each refit 5 renders per position (125 for the full
 pupil at 5 x 5, through the simulator's compiled renderer: a refit takes ~1.2 s polar,
-~3.2 s cartesian) and the filters, 72 MB in int16 for the full pupil (:func:`quantize`; one
+~3.2 s cartesian) and the filters, 72 MB in int16 for the full pupil
+(:func:`.kernels.quantize`; one
 or two positions' rows, 1 kB a block each, are read each frame). Refits can run in a
 background thread (``pupil_async``), as for every pupil-calibrated estimator.
 """
@@ -113,7 +114,7 @@ class GMF(TabledCoG):
             var = np.maximum(np.maximum(img, 0.0) + self.background + self.read_noise ** 2,
                              self.var_floor)
             r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
-            filters[k], scale[k] = quantize(r)
+            filters[k], scale[k] = kernels.quantize(r)
             rsum[k] = (filters[k] * scale[k][..., None]).sum(axis=2)
             ok &= good & (flux > 0)
         return {"version": calibration.version, "filters": filters, "scale": scale,
@@ -204,13 +205,4 @@ class GMF(TabledCoG):
         return d
 
 
-def quantize(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(q, scale)``: filter rows ``r (..., pp)`` as int16 ``q`` with ``r ~ scale q`` (one
-    scale per row, its largest coefficient at 32767: 3e-5 of it at most off), half the bytes
-    of float32 and integer sums in the compiled pass."""
-    top = np.abs(r).max(axis=-1)
-    scale = np.where(top > 0, top / 32767.0, 1.0)
-    return np.rint(r / scale[..., None]).astype(np.int16), scale
-
-
-__all__ = ["GMF", "DERIVATIVE_STEP", "quantize"]
+__all__ = ["GMF", "DERIVATIVE_STEP"]

@@ -347,6 +347,28 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
             out[b, a] = (k - m + min(max(off, -0.5), 0.5)) * step
 
 
+def _filter_flux_q_impl(frame, origins, p, weights, scale, out):
+    # _filter_flux_impl with int16 filter rows (one scale each): exact integer sums, half
+    # the filter bytes read a frame (the filter, not the frame, is most of the CMF's traffic)
+    for b in range(origins.shape[0]):
+        r0, c0 = origins[b, 0], origins[b, 1]
+        w0, w1 = weights[b, 0], weights[b, 1]
+        tot = np.int64(0)
+        a0 = np.int64(0)
+        a1 = np.int64(0)
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            o = i * p
+            for j in range(p):
+                x = np.int64(row[j])
+                tot += x
+                a0 += np.int64(w0[o + j]) * x
+                a1 += np.int64(w1[o + j]) * x
+        out[b, 0] = a0 * scale[b, 0]
+        out[b, 1] = a1 * scale[b, 1]
+        out[b, 2] = tot
+
+
 def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, background,
                       picks, out, index):
     # per block: the CoG moments (exact int32 row sums), the calibrated CoG (minus bias) as
@@ -514,7 +536,17 @@ if AVAILABLE:
     _corr_peak = numba.njit(cache=True, nogil=True, error_model="numpy",
                             fastmath={"contract", "reassoc", "nsz", "arcp"})(_corr_peak_impl)
     _filter_flux = numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
+    _filter_flux_q = numba.njit(cache=True, nogil=True)(_filter_flux_q_impl)
     _block_contract = numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
+
+
+def quantize(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(q, scale)``: filter rows ``r (..., pp)`` as int16 ``q`` with ``r ~ scale q`` (one
+    scale per row, its largest coefficient at 32767: 3e-5 of it at most off), half the bytes
+    of float32 and integer sums in the compiled pass."""
+    top = np.abs(r).max(axis=-1)
+    scale = np.where(top > 0, top / 32767.0, 1.0)
+    return np.rint(r / scale[..., None]).astype(np.int16), scale
 
 
 def cog_moments(frame: np.ndarray, origins: np.ndarray, p: int, centre: float,
@@ -542,15 +574,25 @@ def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
 
 
 def filter_flux(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
-                out: np.ndarray | None = None) -> np.ndarray:
-    """``(n, 3)`` float64: :func:`block_contract` of the ``(n, 2, p*p)`` float32 filter rows,
-    then each block's plain pixel sum (what a row of ones gives, read for free)."""
+                out: np.ndarray | None = None, scale: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 3)`` float64: :func:`block_contract` of the ``(n, 2, p*p)`` filter rows, then
+    each block's plain pixel sum (what a row of ones gives, read for free).
+
+    ``weights`` float32, or int16 with ``scale (n, 2)`` (row ``k`` of block ``b`` is
+    ``scale[b, k] weights[b, k]``, e.g. from :func:`quantize`): then the sums are exact
+    integers, scaled once."""
     n, k, pp = weights.shape
     if k != 2:
         raise ValueError(f"filter_flux takes 2 filter rows, got {k}")
     p = int(round(pp ** 0.5))
     if out is None:
         out = np.empty((n, k + 1))
+    if weights.dtype == np.int16:
+        if scale is None or np.shape(scale) != (n, k):
+            raise ValueError(f"int16 filter rows need scale of shape {(n, k)}")
+        _filter_flux_q(frame, origins, p, np.ascontiguousarray(weights),
+                       np.ascontiguousarray(scale, dtype=np.float64), out)
+        return out
     _filter_flux(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
     return out
 
@@ -693,21 +735,27 @@ _warm = False
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels now, once per process, so the first
-    frame of a running graph does not pay for it (~0.5 s)."""
+    frame of a running graph does not pay for it (~0.5 s). Each frame kernel is warmed on a
+    writable and on a read-only frame: shared-memory frames are read-only views, another
+    signature for numba (compiled on a live node's first frame, that held it ~0.2 s)."""
     global _warm
     if _warm or not AVAILABLE:
         return
     frame = np.zeros((4, 4), np.uint16)
     o = np.zeros((1, 2), np.int64)
-    cog_moments(frame, o, 4, 1.5)
-    block_contract(frame, o, np.zeros((1, 3, 16), np.float32))
-    filter_flux(frame, o, np.zeros((1, 2, 16), np.float32))
+    ro = frame.copy()
+    ro.flags.writeable = False
+    for f in (frame, ro):
+        cog_moments(f, o, 4, 1.5)
+        block_contract(f, o, np.zeros((1, 3, 16), np.float32))
+        filter_flux(f, o, np.zeros((1, 2, 16), np.float32))
+        filter_flux(f, o, np.zeros((1, 2, 16), np.int16), scale=np.ones((1, 2)))
+        ml_search(f, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
+                  np.zeros((1, 2)), 2)
+        grid_filter(f, o, 4, np.zeros((1, 2)), np.zeros((9, 1, 2, 16), np.int16),
+                    np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
+        block_marginals(f, o, 4, np.zeros((1, 2, 4)))
+        block_marginals(f, o, 4)
+        corr_peak(f, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
-    ml_search(frame, o, 4, np.zeros((1, 2, 2, 8), np.float32), np.zeros((1, 2, 5)),
-              np.zeros((1, 2)), 2)
-    grid_filter(frame, o, 4, np.zeros((1, 2)), np.zeros((9, 1, 2, 16), np.int16),
-                np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
-    block_marginals(frame, o, 4, np.zeros((1, 2, 4)))
-    block_marginals(frame, o, 4)
-    corr_peak(frame, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
     _warm = True

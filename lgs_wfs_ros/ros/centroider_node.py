@@ -302,13 +302,25 @@ class CentroiderNode(Node):
             time.sleep(0.005)
 
     def _centroid_and_publish(self, batch):
-        """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order."""
+        """Centroid ``[(stamp_ns, image)]`` and publish their slopes, in order. Small frames
+        of a batch are centroided in one call, then published; full frames one at a time,
+        each published before the next is centroided (a burst of 16 full frames after a
+        stalled source would otherwise hold the first frame's slopes ~8 ms)."""
         if not batch:
             return
+        if len(batch) > 1 and np.prod(self.sensor.frame_shape) <= BATCH_PIXELS:
+            self._publish(self._centroid(batch))
+            return
+        for frame in batch:
+            self._publish(self._centroid([frame]))
+
+    def _centroid(self, batch) -> list:
+        """``[(stamp_ns, slope grid)]`` of ``[(stamp_ns, image)]``; a frame the algorithm
+        fails on is counted and left out."""
         with self._lock:
             centroider, layout = self.centroider, self.layout
             slopes = None
-            if len(batch) > 1 and np.prod(self.sensor.frame_shape) <= BATCH_PIXELS:
+            if len(batch) > 1:
                 try:
                     slopes = centroider.centroid_many([image for _, image in batch])
                 except Exception:      # find the frame at fault: one call per frame below
@@ -325,6 +337,10 @@ class CentroiderNode(Node):
                         continue
                 results.append((stamp_ns, geometry.slopes_to_grid(s, layout)))
         self.counters.computed += len(results)
+        return results
+
+    def _publish(self, results) -> None:
+        """Publish ``[(stamp_ns, slope grid)]``, then the picture and error if due."""
         for stamp_ns, grid in results:
             self._slopes_pub.publish(bags.encode_image(grid, stamp_ns))
             self.counters.processed += 1
