@@ -347,23 +347,29 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
             out[b, a] = (k - m + min(max(off, -0.5), 0.5)) * step
 
 
+def _rows_int16_impl(frame, r0, c0, p, w0, w1):
+    # (pixel sum, w0 . block, w1 . block) of the block at (r0, c0): int16 rows, exact
+    # integer sums (at most 256 x 32767 x 65535 < 2^63)
+    tot = np.int64(0)
+    a0 = np.int64(0)
+    a1 = np.int64(0)
+    for i in range(p):
+        row = frame[r0 + i, c0:c0 + p]
+        o = i * p
+        for j in range(p):
+            x = np.int64(row[j])
+            tot += x
+            a0 += np.int64(w0[o + j]) * x
+            a1 += np.int64(w1[o + j]) * x
+    return tot, a0, a1
+
+
 def _filter_flux_q_impl(frame, origins, p, weights, scale, out):
     # _filter_flux_impl with int16 filter rows (one scale each): exact integer sums, half
     # the filter bytes read a frame (the filter, not the frame, is most of the CMF's traffic)
     for b in range(origins.shape[0]):
-        r0, c0 = origins[b, 0], origins[b, 1]
-        w0, w1 = weights[b, 0], weights[b, 1]
-        tot = np.int64(0)
-        a0 = np.int64(0)
-        a1 = np.int64(0)
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            o = i * p
-            for j in range(p):
-                x = np.int64(row[j])
-                tot += x
-                a0 += np.int64(w0[o + j]) * x
-                a1 += np.int64(w1[o + j]) * x
+        tot, a0, a1 = _rows_int16(frame, origins[b, 0], origins[b, 1], p, weights[b, 0],
+                                  weights[b, 1])
         out[b, 0] = a0 * scale[b, 0]
         out[b, 1] = a1 * scale[b, 1]
         out[b, 2] = tot
@@ -401,17 +407,7 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
             if ky * side + kx == g:
                 break
             g = ky * side + kx
-            w0 = filters[g, b, 0]
-            w1 = filters[g, b, 1]
-            a0 = np.int64(0)
-            a1 = np.int64(0)
-            for i in range(p):
-                row = frame[r0 + i, c0:c0 + p]
-                o = i * p
-                for j in range(p):
-                    x = np.int64(row[j])
-                    a0 += np.int64(w0[o + j]) * x
-                    a1 += np.int64(w1[o + j]) * x
+            _, a0, a1 = _rows_int16(frame, r0, c0, p, filters[g, b, 0], filters[g, b, 1])
             ex = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
             ey = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
         index[b] = g
@@ -530,6 +526,7 @@ if AVAILABLE:
                                   fastmath={"contract", "reassoc", "nsz", "arcp"})(_invert_response_impl)
     _block_moments = numba.njit(cache=True, nogil=True, inline="always")(_block_moments_impl)
     _cog_moments = numba.njit(cache=True, nogil=True)(_cog_moments_impl)
+    _rows_int16 = numba.njit(cache=True, nogil=True, inline="always")(_rows_int16_impl)
     _grid_filter = numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
     _lag_product = numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(
         _lag_product_impl)
