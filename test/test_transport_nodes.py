@@ -146,3 +146,49 @@ def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
     assert 6 <= data.frame_count <= 20                       # 20 Hz of a 0.6 s run
     assert set(data.frames.stamps) <= set(data.truth.stamps)
     assert data.frames.data.shape[1:] == sim.sim.sensor.frame_shape
+
+
+def test_the_recorder_records_frames_from_shared_memory(ros, tmp_path):
+    """recorder with frame_transport shm: frames from the source's shared memory (no ROS
+    copy of the frame at all: frame_publish_hz 0), every 5th kept, each the frame sent with
+    that stamp; slopes and truths from ROS as before."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import load_bag
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
+
+    out, n, every = tmp_path / "shm_frames.mcap", 40, 5
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("discover", value=False),
+        Parameter("frame_transport", value="shm"), Parameter("frame_every", value=every),
+        Parameter("topics", value=["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor",
+                                   "/cog/slopes"])]))
+    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
+                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
+    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in SMALL.items()] + [
+        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
+        Parameter("wait_for_subscribers", value=2), Parameter("start_delay_s", value=1.5),
+        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
+        Parameter("frame_publish_hz", value=0.0)]))
+    sent = {}
+    real_send = sim._outlet.send
+
+    def send(buf, stamp_ns, sensor_id=0):            # what went out, before the loan goes
+        sent[stamp_ns] = buf.image.copy()
+        return real_send(buf, stamp_ns, sensor_id)
+
+    sim._outlet.send = send
+    assert wait_for(lambda: sim.finished.is_set(), timeout=60)
+    assert wait_for(lambda: rec.frames_seen == n, timeout=20)
+    assert wait_for(lambda: rec.recorded.get("/cog/slopes", 0) == n, timeout=20)
+    assert sim._outlet.ros_published == 0
+    rec.close()
+    data = load_bag(out, max_frames=None)
+    order = sorted(sent)
+    assert list(data.frames.stamps) == order[::every]                 # 1st, 6th, ... frame
+    for stamp, frame in zip(data.frames.stamps, data.frames.data):
+        np.testing.assert_array_equal(frame, sent[stamp])
+    assert len(data.truth) == n and rec.gaps == {}
+    assert cog.counters.published == n

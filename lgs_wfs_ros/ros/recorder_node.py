@@ -5,6 +5,10 @@ receive time and publish time = source time. Topics come from the ``topics`` par
 ``discover`` on, from the graph: any topic whose last name is a contract name (frame,
 true_slopes, slopes, sensor, centroider) with the contract's type. Frames can be decimated
 (``frame_every``) since full frames at 700 Hz are more than one Python process can write here.
+With ``frame_transport: shm`` the frames come from the source's shared memory instead of the
+ROS topic (read in place on a thread of the recorder's own, each acknowledged; only the kept
+ones are encoded and written): no 1.84 MB copy through DDS for the frames a bag keeps, and
+the source's ROS copy of the frame can be off (``frame_publish_hz: 0``).
 
 ``frame_subapertures`` (valid-subaperture indices in the contract's order; empty: off) writes
 each kept frame as the blocks of those subapertures only, on ``/<ns>/frame_subapertures``
@@ -37,6 +41,7 @@ from ..bags import subapertures as subaps
 from ..bags.portable import STRING, portable_cdr
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
+from ..transport import TRANSPORTS, frames as frame_transport, shm
 from .spinning import run_node, take_queued
 from . import health, parameters, qos
 
@@ -105,6 +110,10 @@ class RecorderNode(Node):
                            "loses at most the open chunk.", low=16, high=1 << 20, read_only=True)
         parameters.declare(self, "compression", "zstd", "Chunk compression.",
                            choices=("zstd", "lz4", "none"), read_only=True)
+        parameters.declare(self, "frame_transport", "ros", "Where frames come from: 'ros' "
+                           "(the frame topic) or 'shm' (the source's iceoryx2 shared memory, "
+                           "read in place; only the kept frames are encoded).",
+                           choices=TRANSPORTS, read_only=True)
         self.add_on_set_parameters_callback(self._validate)
         self.add_post_set_parameters_callback(self._apply)
         try:      # an override given at start (the on-set callback does not see it)
@@ -113,7 +122,17 @@ class RecorderNode(Node):
         except ValueError as exc:
             raise ValueError(f"frame_subapertures: {exc}") from None
 
-        p = parameters.values(self, ("output", "overwrite", "compression", "chunk_kb"))
+        p = parameters.values(self, ("output", "overwrite", "compression", "chunk_kb",
+                                     "frame_transport"))
+        self._shm_frames = p["frame_transport"] == "shm"
+        if self._shm_frames and not shm.AVAILABLE:
+            raise ValueError("frame_transport 'shm' needs iceoryx2 "
+                             "(pip install 'lgs_wfs_ros[shm]'); use 'ros'")
+        self._inlets = {}                        # frame topic -> FrameInlet (shm)
+        self._shm_lost = {}                      # frame topic -> sequence gaps seen so far
+        # the executor's thread and the inlets' write the bag: one writer at a time (an
+        # RLock: a failed write closes the bag from inside the write)
+        self._write_lock = threading.RLock()
         out = Path(p["output"])
         out.parent.mkdir(parents=True, exist_ok=True)
         self.path = out
@@ -209,7 +228,13 @@ class RecorderNode(Node):
             profile = qos.frame_qos(self.sensors.get(_namespace(topic)))
         self.writer.add_topic(topic, type_name, qos=qos.describe(profile))
         self.recorded[topic] = 0
-        self._create_subscription(topic, type_name, profile)
+        if kind == "frame" and self._shm_frames:
+            self._subs[topic] = None             # taken: frames come through the inlet
+            self._inlets[topic] = frame_transport.FrameInlet(
+                topic, lambda frames, lost, topic=topic: self._on_shm_frames(topic, frames, lost),
+                shm.MAX_DEPTH)
+        else:
+            self._create_subscription(topic, type_name, profile)
         self.get_logger().info(f"recording {topic} [{type_name}]")
         if kind == "frame" and len(self.selection):
             self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
@@ -232,7 +257,7 @@ class RecorderNode(Node):
         topic = ns + "/frame"
         old = self._subs.get(topic)
         profile = qos.frame_qos(sensor)
-        if old is None or old.qos_profile.depth == profile.depth:
+        if old is None or old.qos_profile.depth == profile.depth:     # None: shm frames
             return
         for cdr, info in take_queued(old, Image, profile.depth + old.qos_profile.depth):
             self._on_message(topic, "frame", cdr, info)
@@ -255,7 +280,38 @@ class RecorderNode(Node):
                              f"publication sequence jumped from {last} to {seq}")
         self._sequence[topic] = seq
 
-    def _on_message(self, topic, kind, cdr, info):
+    def _on_shm_frames(self, topic, frames, lost: int):
+        """Frames read in place from shared memory (the inlet's thread): ``[(stamp_ns, image,
+        sensor_id)]``, valid during this call; ``lost``: the source's frames that never came
+        (sequence gaps). Every frame counts toward ``frame_every`` and ``frames``; only the
+        kept ones are encoded (log time: now; publish time: the frame's stamp)."""
+        with self._write_lock:
+            if lost > self._shm_lost.get(topic, 0):
+                self.gaps[topic] = self.gaps.get(topic, 0) + lost - self._shm_lost.get(topic, 0)
+                self.health.note(f"messages lost before the recorder on {topic}",
+                                 f"{lost} shared-memory frames never arrived")
+                self._shm_lost[topic] = lost
+            for stamp_ns, image, _sensor_id in frames:
+                if self.closing or self.budget_reached:
+                    return
+                keep = self._count_frame()
+                cdr = bags.encode_image(image, stamp_ns) if keep else None
+                self._on_message(topic, "frame", cdr,
+                                 {"received_timestamp": time.time_ns(),
+                                  "source_timestamp": stamp_ns}, keep=keep)
+
+    def _count_frame(self) -> bool:
+        """One more frame seen: is it one ``frame_every`` keeps?"""
+        self.frames_seen += 1
+        every = self.get_parameter("frame_every").value
+        return every > 0 and (self.frames_seen - 1) % every == 0
+
+    def _on_message(self, topic, kind, cdr, info, keep=None):
+        """Write one message (``keep``: a frame already counted, by the shm path)."""
+        with self._write_lock:
+            self._write_message(topic, kind, cdr, info, keep)
+
+    def _write_message(self, topic, kind, cdr, info, keep):
         if self.closing:
             return
         self.messages_taken += 1
@@ -263,9 +319,8 @@ class RecorderNode(Node):
         if kind == "frame":
             if self.budget_reached:
                 return
-            self.frames_seen += 1
-            every = self.get_parameter("frame_every").value
-            keep = every > 0 and (self.frames_seen - 1) % every == 0
+            if keep is None:
+                keep = self._count_frame()
         else:
             keep = True
             if kind == "sensor":
@@ -367,8 +422,11 @@ class RecorderNode(Node):
             if self.closing:
                 return
             self.closing = True
+        for inlet in self._inlets.values():      # no more shm frames (not from their thread)
+            inlet.close()
         try:
-            self.writer.close()
+            with self._write_lock:
+                self.writer.close()
         except OSError as exc:
             self.get_logger().error(f"closing {self.path} failed: {exc}")
         finally:

@@ -126,10 +126,18 @@ class FrameInlet:
         self._sub = shm.ShmFrameSubscriber(topic_service(topic), depth=self.depth, ack=True)
         self._on_frames = on_frames
         self._stop = threading.Event()
+        self._closed_in_thread = False
         self._thread = threading.Thread(target=self._run, name="frame-inlet", daemon=True)
         self._thread.start()
 
     def _run(self):
+        try:
+            self._loop()
+        finally:
+            if self._closed_in_thread:
+                self._sub.close()
+
+    def _loop(self):
         while not self._stop.is_set():
             if not self._sub.wait(0.1):
                 continue
@@ -148,6 +156,12 @@ class FrameInlet:
                     f.release()
 
     def close(self):
+        """Stop the thread and the subscriber; from the callback itself (a reader that stops
+        on what it read), only stop: the thread ends after the call."""
+        if threading.current_thread() is self._thread:
+            self._closed_in_thread = True
+            self._stop.set()
+            return
         self._stop.set()
         self._thread.join(timeout=5)
         self._sub.close()
