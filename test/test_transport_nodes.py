@@ -112,29 +112,37 @@ def test_player_through_shared_memory(ros, tmp_path):
     assert cog.counters.transport_lost == 0 and cog.counters.rejected == 0
 
 
-def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
-    """simulator --shm--> centroider, recorder on the ROS topics: the bag loads with the
-    analysis reader, every slope joins its truth by stamp, and the decimated frames are
-    frames of the run (their stamps among the truths')."""
+def _shm_graph(ros, out, n, recorder, source):
+    """recorder (``/wfs``, the listed topics plus ``recorder`` parameters), a cog centroider
+    (``/cog``) and a simulator of ``n`` small frames at 100 Hz in lockstep over shared
+    memory (plus ``source`` parameters): ``(recorder, centroider, simulator)``."""
     from rclpy.parameter import Parameter
-    from lgs_wfs_ros.analysis.bagdata import joined, load_bag
     from lgs_wfs_ros.ros.centroider_node import CentroiderNode
     from lgs_wfs_ros.ros.recorder_node import RecorderNode
     from lgs_wfs_ros.ros.simulator_node import SimulatorNode
 
-    out, n = tmp_path / "shm.mcap", 60
     rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
-        Parameter("output", value=str(out)), Parameter("discover", value=False),
-        Parameter("topics", value=["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor",
-                                   "/cog/slopes", "/cog/centroider"])]))
+        Parameter("output", value=str(out)), Parameter("discover", value=False)] + [
+        Parameter(k, value=v) for k, v in recorder.items()]))
     cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
                                  parameter_overrides=[Parameter("frame_transport", value="shm")]))
     sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=[
-        Parameter(k, value=v) for k, v in SMALL.items()] + [
-        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
-        Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=1.5),
-        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
-        Parameter("frame_publish_hz", value=20.0)]))
+        Parameter(k, value=v) for k, v in {**SMALL, "frames": n, "rate_hz": 100.0,
+                                           "start_delay_s": 1.5, "frame_transport": "shm",
+                                           "frame_lockstep": True, **source}.items()]))
+    return rec, cog, sim
+
+
+def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
+    """simulator --shm--> centroider, recorder on the ROS topics: the bag loads with the
+    analysis reader, every slope joins its truth by stamp, and the decimated frames are
+    frames of the run (their stamps among the truths')."""
+    from lgs_wfs_ros.analysis.bagdata import joined, load_bag
+
+    out, n = tmp_path / "shm.mcap", 60
+    rec, cog, sim = _shm_graph(ros, out, n, {"topics": [
+        "/wfs/frame", "/wfs/true_slopes", "/wfs/sensor", "/cog/slopes", "/cog/centroider"]},
+        {"wait_for_subscribers": 1, "frame_publish_hz": 20.0})
     assert wait_for(lambda: sim.finished.is_set(), timeout=60)
     assert wait_for(lambda: cog.counters.published == n, timeout=20)
     assert wait_for(lambda: rec.recorded.get("/cog/slopes", 0) == n, timeout=20)
@@ -152,26 +160,13 @@ def test_the_recorder_records_frames_from_shared_memory(ros, tmp_path):
     """recorder with frame_transport shm: frames from the source's shared memory (no ROS
     copy of the frame at all: frame_publish_hz 0), every 5th kept, each the frame sent with
     that stamp; slopes and truths from ROS as before."""
-    from rclpy.parameter import Parameter
     from lgs_wfs_ros.analysis.bagdata import load_bag
-    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
-    from lgs_wfs_ros.ros.recorder_node import RecorderNode
-    from lgs_wfs_ros.ros.simulator_node import SimulatorNode
 
     out, n, every = tmp_path / "shm_frames.mcap", 40, 5
-    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
-        Parameter("output", value=str(out)), Parameter("discover", value=False),
-        Parameter("frame_transport", value="shm"), Parameter("frame_every", value=every),
-        Parameter("topics", value=["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor",
-                                   "/cog/slopes"])]))
-    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=REMAP,
-                                 parameter_overrides=[Parameter("frame_transport", value="shm")]))
-    sim = ros.add(SimulatorNode(context=ros.context, parameter_overrides=[
-        Parameter(k, value=v) for k, v in SMALL.items()] + [
-        Parameter("frames", value=n), Parameter("rate_hz", value=100.0),
-        Parameter("wait_for_subscribers", value=2), Parameter("start_delay_s", value=1.5),
-        Parameter("frame_transport", value="shm"), Parameter("frame_lockstep", value=True),
-        Parameter("frame_publish_hz", value=0.0)]))
+    rec, cog, sim = _shm_graph(ros, out, n, {
+        "frame_transport": "shm", "frame_every": every,
+        "topics": ["/wfs/frame", "/wfs/true_slopes", "/wfs/sensor", "/cog/slopes"]},
+        {"wait_for_subscribers": 2, "frame_publish_hz": 0.0})
     sent = {}
     real_send = sim._outlet.send
 
