@@ -151,7 +151,9 @@ def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
     assert len(data.truth) == n and len(data.segments) == 1
     stamps, est, truth, join = joined(data.truth, data.segments[0].slopes)
     assert len(stamps) == n and np.isfinite(est).any()
-    assert 6 <= data.frame_count <= 20                       # 20 Hz of a 0.6 s run
+    # 20 Hz of wall time over a run of 60 frames at 100 Hz: ~12 (lockstep under load makes
+    # the run longer: 21 seen once), far fewer than the 60 frames sent
+    assert 6 <= data.frame_count < n // 2
     assert set(data.frames.stamps) <= set(data.truth.stamps)
     assert data.frames.data.shape[1:] == sim.sim.sensor.frame_shape
 
