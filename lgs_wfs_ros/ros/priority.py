@@ -19,8 +19,8 @@ TASKS = Path("/proc/self/task")
 
 def lower(nice: int) -> int:
     """Every thread of this process at ``nice`` (0-19) at least; never raised (that needs
-    privileges). Returns the threads changed (0 where the OS has no per-thread list: then
-    the calling thread alone, and the threads it starts later)."""
+    privileges). Returns the threads changed. Where the OS has no per-thread list, the
+    calling thread alone (and the threads it starts later)."""
     if not 0 <= int(nice) <= 19:
         raise ValueError(f"nice must be 0 to 19, got {nice}")
     tids = [int(t) for t in os.listdir(TASKS)] if TASKS.is_dir() else [0]
@@ -32,7 +32,7 @@ def lower(nice: int) -> int:
                 changed += 1
         except (ProcessLookupError, PermissionError):     # a thread that just ended
             continue
-    return changed if TASKS.is_dir() else 0
+    return changed
 
 
 def current() -> int:
