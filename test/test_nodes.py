@@ -341,6 +341,35 @@ def test_player_keeps_at_most_in_flight_frames_unanswered(ros, tmp_path):
     player.stop()
 
 
+def test_looped_player_reads_the_bag_into_memory_before_its_first_frame(ros, tmp_path):
+    """With loop, a bag within cache_mb is read during the start delay (read while playing,
+    the first pass went out late at 800 Hz); a bigger one streams every pass."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import ContractBagWriter
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    path = tmp_path / "in.mcap"
+    with ContractBagWriter(path, SMALL) as bag:
+        for k in range(6):
+            bag.frame(1000 + 10 * k, small_frame(SMALL, k))
+    played = {}
+    for cache_mb in (1, 0):
+        player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+            Parameter("bag", value=str(path)), Parameter("rate", value="100"),
+            Parameter("loop", value=True), Parameter("cache_mb", value=cache_mb),
+            Parameter("start_delay_s", value=1.0)]))
+        assert wait_for(lambda: player._cache is not None or cache_mb == 0, timeout=5)
+        assert player.published["frame"] == 0          # still in the start delay
+        if cache_mb:
+            kinds = [kind for kind, _ in player._cache]
+            assert kinds.count("frame") == 6 and kinds.count("sensor") == 1
+        assert wait_for(lambda: player.published["frame"] >= 14, timeout=20)
+        assert player._cache is None if cache_mb == 0 else player._cache is not None
+        player.stop()
+        played[cache_mb] = player.published["frame"]
+    assert min(played.values()) >= 14
+
+
 def test_frame_queue_holds_a_fixed_time():
     from lgs_wfs_ros.ros import qos
     assert qos.frame_depth(700.0, 1_843_264) == 100            # full pupil: 0.14 s
