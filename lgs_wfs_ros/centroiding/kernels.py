@@ -349,18 +349,27 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
 
 def _rows_int16_impl(frame, r0, c0, p, w0, w1):
     # (pixel sum, w0 . block, w1 . block) of the block at (r0, c0): int16 rows, exact
-    # integer sums (at most 256 x 32767 x 65535 < 2^63)
+    # integer sums (at most 256 x 32767 x 65535 < 2^63). Summed a pixel row at a time (the
+    # row's pixel sum in int32: p x 65535 < 2^31; the products in int64), then the rows
+    # added up: the same integers, 15-20 % faster on a cold full frame than one running sum
+    # (filter_flux 0.26-0.27 against 0.32 ms, 2026-11-25)
     tot = np.int64(0)
     a0 = np.int64(0)
     a1 = np.int64(0)
     for i in range(p):
         row = frame[r0 + i, c0:c0 + p]
         o = i * p
+        t = np.int32(0)
+        b0 = np.int64(0)
+        b1 = np.int64(0)
         for j in range(p):
-            x = np.int64(row[j])
-            tot += x
-            a0 += np.int64(w0[o + j]) * x
-            a1 += np.int64(w1[o + j]) * x
+            x = np.int32(row[j])
+            t += x
+            b0 += np.int32(w0[o + j]) * x
+            b1 += np.int32(w1[o + j]) * x
+        tot += t
+        a0 += b0
+        a1 += b1
     return tot, a0, a1
 
 
