@@ -21,7 +21,10 @@ against its truth, both as received by the recorder: source publish -> slopes in
 recorder), ``cpu_ms_per_frame`` (a dict per process: user + system CPU of all its threads,
 from /proc, over its own frames). ``run(quick)`` (for ``benchmarks/run.py``) runs a smaller
 grid and returns the rows flattened to ``name/value/unit/target/note`` with the case beside.
-The machine may be shared: the load average is in every row.
+The machine may be shared: the load average is in every row. The bags (the player's and
+the recorder's) go to /dev/shm where it has room, else to the temporary directory
+(``--out-dir`` chooses; ``bag_dir`` in every row): on this VM's disk the recorder's file
+writes took CPU from the graph being measured.
 """
 
 from __future__ import annotations
@@ -249,11 +252,34 @@ def run_case(transport: str, alg: str, source: str, size: str, rate: float, seco
             "lockstep": lockstep, "seconds": seconds, "load": os.getloadavg()[0]}
 
 
+# The bags (the player's and the recorder's, ~0.5 GB a 10 s case) go to RAM where the host
+# has it: written to this VM's ext4 disk, the recorder's 53 MB/s cost it 0.22-0.26 ms of CPU
+# a frame instead of 0.16-0.20 and put file-system work on the 2 cores the graph is measured
+# on (cmf at 800 Hz over shm, runs alternated: p99 <= 5 ms in 9 of 10 runs in RAM, 5 of 7
+# on disk; docs/transport.md). ``--out-dir`` chooses; each row says where.
+RAM_DIR = Path("/dev/shm")
+RAM_NEEDED = 2 << 30
+
+
+def bag_dir(out_dir: str | None = None) -> str | None:
+    """Where the case's bags go: ``out_dir`` if given, else /dev/shm when it has 2 GiB
+    free, else the system's temporary directory (None)."""
+    if out_dir:
+        return out_dir
+    try:
+        st = os.statvfs(RAM_DIR)
+    except OSError:
+        return None
+    free = st.f_bavail * st.f_frsize
+    return str(RAM_DIR) if free >= RAM_NEEDED and os.access(RAM_DIR, os.W_OK) else None
+
+
 def grid(transports, algorithms, sources, sizes, rate, single_rate, seconds, lockstep=False,
-         log=print) -> list[dict]:
-    """Every case of the grid (bags made once per size)."""
+         log=print, out_dir: str | None = None) -> list[dict]:
+    """Every case of the grid (bags made once per size, in :func:`bag_dir`)."""
     rows = []
-    with tempfile.TemporaryDirectory(prefix="bench_transport_") as d:
+    where = bag_dir(out_dir)
+    with tempfile.TemporaryDirectory(prefix="bench_transport_", dir=where) as d:
         tmp = Path(d)
         for size in sizes:
             r = rate if size == "full" else single_rate
@@ -267,6 +293,7 @@ def grid(transports, algorithms, sources, sizes, rate, single_rate, seconds, loc
                     for alg in algorithms:
                         row = run_case(transport, alg, source, size, r, seconds, tmp, bag,
                                        lockstep)
+                        row["bag_dir"] = where or tempfile.gettempdir()
                         log(json.dumps(row))
                         rows.append(row)
     return rows
@@ -279,7 +306,8 @@ def flat_rows(case: dict) -> list[dict]:
     lost = sum(case["lost"].values())
     cpu = ", ".join(f"{k.split('_')[0]} {v:.3g}" for k, v in case["cpu_ms_per_frame"].items())
     note = (f"lost {json.dumps(case['lost'])}; CPU ms/frame {cpu}; latency p50 "
-            f"{case['latency_ms_p50']} ms; load {case['load']:.2f}")
+            f"{case['latency_ms_p50']} ms; load {case['load']:.2f}"
+            + (f"; bags in {case['bag_dir']}" if case.get("bag_dir") else ""))
     return [{"name": f"{label} delivered", "value": case["delivered_hz"], "unit": "Hz",
              "target": f">= {0.99 * case['offered_hz']:g} Hz, 0 lost", "note": note, "case": case},
             {"name": f"{label} lost", "value": float(lost), "unit": "frames", "target": "0",
@@ -374,12 +402,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--lockstep", action="store_true", help="shm sources wait for the readers")
     ap.add_argument("--json", default="", help="write the rows here (a JSON list)")
+    ap.add_argument("--out-dir", default="", help="directory for the bags (default: /dev/shm "
+                    "if it has 2 GiB free, else the system's temporary directory)")
     a = ap.parse_args(argv)
     split = lambda text: [t.strip() for t in text.split(",") if t.strip()]  # noqa: E731
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     rows = grid(split(a.transport), split(a.algorithms), split(a.source), split(a.sizes),
-                a.rate, a.single_rate, a.seconds, a.lockstep)
+                a.rate, a.single_rate, a.seconds, a.lockstep, out_dir=a.out_dir or None)
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
         print(f"wrote {len(rows)} rows to {a.json}")
