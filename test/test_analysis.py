@@ -152,6 +152,30 @@ def test_crb_frame_count_scales_with_subapertures():
     assert report.crb_frame_count(2100, 100) == 256 and report.crb_frame_count(2100, 1000) == 45
 
 
+def test_a_centroider_without_slopes_is_named_not_a_crash(tmp_path):
+    """A centroider whose slopes topic was recorded empty (it started too late for a short
+    run) is listed as such beside the others; with nothing else the report refuses with
+    that reason (it raised an IndexError)."""
+    from lgs_wfs_ros.analysis.bagload import IMAGE
+
+    def bag(name, with_cog):
+        with bagwrite.ContractBagWriter(tmp_path / name, single(), log_ns=T0) as w:
+            w.centroider("cmf", {"algorithm": "cmf"}, T0)
+            w.topic("/cmf/slopes", IMAGE)                  # subscribed, nothing came
+            for k in range(10):
+                stamp = T0 + DT * k
+                w.truth(stamp, np.zeros((1, 2)))
+                if with_cog:
+                    w.slopes("cog", stamp, np.full((1, 2), 0.1), stamp + 1000)
+        return tmp_path / name
+
+    res = report.analyse(bagload.load_bag(bag("w.mcap", True)), crb=False)
+    assert list(res["algorithms"]) == ["cog"] and res["without_slopes"] == ["cmf"]
+    assert "no slopes recorded: cmf" in report.format_report(res)
+    with pytest.raises(ValueError, match="no slopes recorded"):
+        report.analyse(bagload.load_bag(bag("n.mcap", False)), crb=False)
+
+
 def test_centroider_switch_splits_segments(tmp_path):
     truths = np.zeros((20, 1, 2))
     st = T0 + DT * np.arange(20)

@@ -181,6 +181,9 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
            "subaperture_frames": data.subapertures}
     series, errs = {}, {}
     for seg in data.segments:
+        if not len(seg.slopes):       # a centroider that described itself, no slope recorded
+            out.setdefault("without_slopes", []).append(seg.label)
+            continue
         stamps, est, tru, j = joined(data.truth, seg.slopes)
         err = metrics.errors(est[:, valid], tru[:, valid])            # (K, n, 2)
         s = metrics.summarize(err, mas)
@@ -200,6 +203,9 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
         series[seg.label] = (stamps, per_frame)
         errs[seg.label] = (stamps, err)
         out["algorithms"][seg.label] = s
+    if not out["algorithms"]:
+        raise ValueError(f"{data.path}: no slopes recorded ({', '.join(out['without_slopes'])} "
+                         f"described, none measured a frame in the bag)")
     _ratios_to_cog(out["algorithms"], errs)
     crb_frames = None
     if crb:
@@ -319,6 +325,8 @@ def format_report(res: dict) -> str:
                f"on {sub['topic']})")
     lines = [f"bag {res['bag']}: {res['frames']} frames{cut}, {res['truths']} truths", ""]
     lines.append(metrics.table(res["algorithms"], mas))
+    if res.get("without_slopes"):
+        lines.append(f"no slopes recorded: {', '.join(res['without_slopes'])}")
     crb = res.get("crb") or {}
     if "mean_euclid" in crb:
         lines.append(f"{'CRB':<12}{crb['mean_euclid']:>12.4f}{crb['mae']:>11.4f}{'':>27}"
