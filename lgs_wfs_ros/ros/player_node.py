@@ -276,15 +276,21 @@ class PlayerNode(FrameSource, Node):
         if not self.get_parameter("loop").value or self._cache is not None:
             return
         budget, size, cache = self.get_parameter("cache_mb").value * 2**20, 0, []
+        start = time.monotonic()
         try:
             for topic, _type, _log, _pub, cdr in self.reader.messages(list(self.sources)):
                 size += len(cdr)
                 if size > budget or self._stop.is_set():   # too big: streamed every pass
+                    if size > budget:
+                        self.get_logger().info(f"bag over cache_mb ({budget / 2**20:g} MB): "
+                                               "every pass read from the file")
                     return
                 cache.append((self.sources[topic], cdr))
         except bags.BagError:            # damaged: played from the file up to the damage,
             return                       # which is reported there
         self._cache = cache
+        self.get_logger().info(f"bag read into memory: {len(cache)} messages, "
+                               f"{size / 2**20:.0f} MB in {time.monotonic() - start:.1f} s")
 
     def _messages(self):
         """(kind, cdr bytes) of one pass over the bag: from memory when :meth:`_preload` kept
