@@ -123,6 +123,31 @@ def test_simulator_takes_an_integer_photons_at_start_and_at_run_time(ros):
     sim.stop()
 
 
+def test_a_number_is_taken_for_a_string_as_its_text(ros, tmp_path):
+    """The player's rate is 'recorded', 'max' or a number: `-p rate:=800` and `ros2 param set
+    ... rate 400` arrive as numbers, which rclpy refused for a string parameter."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.analysis.bagdata import ContractBagWriter
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+    from lgs_wfs_ros.sensor import Sensor
+    import numpy as np
+    sensor = Sensor.paper_single("polar")
+    path = tmp_path / "one.mcap"
+    with ContractBagWriter(path, sensor) as bag:
+        bag.frame(1000, np.zeros(sensor.frame_shape, np.uint16))
+    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(path)), Parameter("rate", value=800),
+        Parameter("start_delay_s", value=30.0)]))
+    assert player.get_parameter("rate").value == "800"
+    res = set_param(ros, "/wfs/player_node", "rate", 400.5)
+    assert res.successful, res.reason
+    assert player.get_parameter("rate").value == "400.5"
+    res = set_param(ros, "/wfs/player_node", "rate", -3)       # still validated
+    assert not res.successful and player.get_parameter("rate").value == "400.5"
+    assert not set_param(ros, "/wfs/player_node", "loop", 1).successful   # bool stays bool
+    player.stop()
+
+
 def run_node(module, *ros_args, timeout=60):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.run([sys.executable, "-m", f"lgs_wfs_ros.ros.{module}", "--ros-args",
@@ -134,6 +159,9 @@ def test_command_line_integer_for_double_and_a_refused_start():
                   "-p", "n_subaps:=8", "-p", "diameter_m:=4", "-p", "obstruction_m:=0.5")
     assert ok.returncode == 0, ok.stdout + ok.stderr
     assert "1000 photons" in ok.stderr
+    rate = run_node("player_node", "-p", "bag:=/nonexistent.mcap", "-p", "rate:=800")
+    assert rate.returncode == 2 and "no such file" in rate.stderr, rate.stderr  # the bag,
+    assert "expecting type" not in rate.stderr                                 # not the rate
     bad = run_node("simulator_node", "-p", "photons:=-5.0", "-p", "frames:=1")
     assert bad.returncode == 2
     assert "photons" in bad.stderr and "Traceback" not in bad.stdout + bad.stderr

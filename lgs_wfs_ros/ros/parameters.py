@@ -7,6 +7,8 @@ that declares through :func:`declare` gets, once:
 - an integer taken where a double is due, both at start-up (``-p photons:=1000``, which
   rclpy refuses with an exception) and at run time (``ros2 param set ... photons 1000``,
   which rclpy refuses as "Wrong parameter type"): a pre-set callback converts it;
+- likewise a number where a string is due, as its text (the player's ``rate`` is
+  ``recorded``, ``max`` or a number: ``-p rate:=800`` arrives as an integer);
 - the allowed choices of a string parameter checked (a descriptor cannot hold them: they are
   in its description and ``additional_constraints``, so ``ros2 param describe`` shows them).
 
@@ -47,6 +49,9 @@ class _Checks:
                 widen = _WIDENED.get(desc.type)
                 if not desc.dynamic_typing and widen and p.type_ == widen[0]:
                     p = Parameter(p.name, value=widen[1](p.value))
+                elif (not desc.dynamic_typing and desc.type == ParameterType.PARAMETER_STRING
+                      and p.type_ in (Parameter.Type.INTEGER, Parameter.Type.DOUBLE)):
+                    p = Parameter(p.name, value=str(p.value))
             out.append(p)
         return out
 
@@ -90,7 +95,8 @@ def declare(node, name: str, default, description: str, *, low=None, high=None,
     """Declare one parameter with a descriptor (description, range, allowed values).
 
     A start-up override of the wrong type is refused by rclpy with an exception; for an
-    integer where a double is due it is taken as that double instead.
+    integer where a double is due it is taken as that double instead, and a number where a
+    string is due as its text.
     """
     checks = _checks(node)
     if choices:
@@ -100,17 +106,19 @@ def declare(node, name: str, default, description: str, *, low=None, high=None,
     try:
         return node.declare_parameter(name, default, desc)
     except InvalidParameterTypeException:
-        if not isinstance(default, float):
+        if not isinstance(default, (float, str)):
             raise
-    # The override is an integer (or not a number at all): read it through a dynamically
-    # typed declaration (public API only), then declare the double with its value.
+    # The override is of another type: read it through a dynamically typed declaration
+    # (public API only), then declare the double (the string) with its value (its text).
     given = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
     value = given.value
     node.undeclare_parameter(name)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"parameter {name} must be a number, got {value!r}")
+        kind = "a string" if isinstance(default, str) else "a number"
+        raise ValueError(f"parameter {name} must be {kind}, got {value!r}")
+    value = str(value) if isinstance(default, str) else float(value)
     # declared with the given value as its default: ranges and callbacks apply as usual
-    return node.declare_parameter(name, float(value), desc, ignore_override=True)
+    return node.declare_parameter(name, value, desc, ignore_override=True)
 
 
 def declare_option(node, opt):
