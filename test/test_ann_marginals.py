@@ -4,12 +4,12 @@ axis, references from the pupil calibration; and the compiled marginals kernel."
 import numpy as np
 import pytest
 
-from lgs_wfs_ros.centroiding import kernels, make_centroider, options
+from lgs_wfs_ros.centroiding import kernels, make_centroider
 from lgs_wfs_ros.learning import margtrain, refdata
 from lgs_wfs_ros.learning.model import forward
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
-from test_ann_reference import P, frames
+from test_ann_reference import P, beside_calibrated_cog, frames
 
 DOMAIN = {"radius_m": [0.0, 40.0], "detector": ["polar"], "photons": [100, 3000],
           "profile_prior": "test", "input": "marginals+reference"}
@@ -51,11 +51,8 @@ def test_linear_marginal_model_is_the_pupil_calibrated_cog(tmp_path, log_weight)
     the calibrated CoG of the row sums); the log-total input is the log10 of each block's
     counts (over 3, minus 0.8)."""
     sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
-    path = linear_marginal_model(tmp_path / "marg.onnx", log_weight)
-    pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    ann = options.build("ann", sensor, {"model": str(path), **pup})
-    cog = options.build("cog", sensor, {"bias": "pupil", **pup})
-    plain = options.build("cog", sensor, {})
+    ann, cog, plain = beside_calibrated_cog(
+        sensor, linear_marginal_model(tmp_path / "marg.onnx", log_weight))
     lay = geometry.layout(sensor)
     for k, f in enumerate(frames(sensor, 7)):
         data = f if k % 2 else geometry.frame_to_stack(f, lay)

@@ -50,6 +50,31 @@ def _check_layers(layers) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def tanh_layers(layers, first: str, output: str | None):
+    """``(nodes, initializers, last)``: the ONNX nodes of a tanh MLP from its first layer's
+    product on: ``first`` names that product (``x W0``, without ``b0``); then ``+ b0``,
+    ``tanh``, ``x W1 + b1``, ... with no tanh after the last layer, whose sum is named
+    ``output`` (``None``: ``z<k>``, for a graph that goes on). ``layers`` as trained,
+    ``[(W (in, out), b (out,)), ...]``, stored float32 (``W0`` is not used)."""
+    from onnx import helper, numpy_helper
+
+    nodes, inits, last = [], [], first
+    for k, (w, b) in enumerate(layers):
+        if k > 0:
+            inits.append(numpy_helper.from_array(np.asarray(w, np.float32), f"W{k}"))
+            nodes.append(helper.make_node("MatMul", [last, f"W{k}"], [f"z{k}m"]))
+            last = f"z{k}m"
+        is_out = k == len(layers) - 1
+        out = output if is_out and output is not None else f"z{k}"
+        inits.append(numpy_helper.from_array(np.asarray(b, np.float32), f"b{k}"))
+        nodes.append(helper.make_node("Add", [last, f"b{k}"], [out]))
+        last = out
+        if not is_out:
+            nodes.append(helper.make_node("Tanh", [out], [f"h{k}"]))
+            last = f"h{k}"
+    return nodes, inits, last
+
+
 def build_model(layers, *, pixels: int, conditioning: str = "none", input_gain: float = 1.0,
                 metadata: dict | None = None, name: str = "lgs_wfs_ann",
                 rotate_to_local: bool = False):
@@ -95,17 +120,9 @@ def build_model(layers, *, pixels: int, conditioning: str = "none", input_gain: 
         nodes.append(helper.make_node("MatMul", [COND_NAME, init(w0[npx:], "W0c")], ["z0c"]))
         nodes.append(helper.make_node("Add", ["z0p", "z0c"], ["z0pc"]))
         last = "z0pc"
-    for k, (w, b) in enumerate(layers):
-        if k > 0:
-            nodes.append(helper.make_node("MatMul", [last, init(w, f"W{k}")], [f"z{k}m"]))
-            last = f"z{k}m"
-        is_out = k == len(layers) - 1
-        out = OUTPUT_NAME if is_out and not rotate_to_local else f"z{k}"
-        nodes.append(helper.make_node("Add", [last, init(b, f"b{k}")], [out]))
-        last = out
-        if not is_out:
-            nodes.append(helper.make_node("Tanh", [out], [f"h{k}"]))
-            last = f"h{k}"
+    more, more_inits, last = tanh_layers(layers, last, None if rotate_to_local else OUTPUT_NAME)
+    nodes += more
+    inits += more_inits
     if rotate_to_local:
         if not nc:
             raise ValueError("rotate_to_local needs a conditioning input holding e")

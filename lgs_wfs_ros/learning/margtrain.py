@@ -85,21 +85,11 @@ def build_model(layers, pixels: int, metadata: dict, name: str = "ann_marg"):
              helper.make_node("MatMul", [REF_INPUT, "Wr"], ["zr"]),
              helper.make_node("Add", ["zm", "zn"], ["zmn"]),
              helper.make_node("Add", ["zmn", "zr"], ["z0s"])]
-    last = "z0s"
-    for k, (w, b) in enumerate(layers):
-        if k == 0:
-            b = np.asarray(b) - LOG_OFFSET * np.asarray(wn)[0]
-        else:
-            inits.append(numpy_helper.from_array(f32(w), f"W{k}"))
-            nodes.append(helper.make_node("MatMul", [last, f"W{k}"], [f"z{k}m"]))
-            last = f"z{k}m"
-        out = SHIFT_OUTPUT if k == len(layers) - 1 else f"z{k}"
-        inits.append(numpy_helper.from_array(f32(b), f"b{k}"))
-        nodes.append(helper.make_node("Add", [last, f"b{k}"], [out]))
-        last = out
-        if k < len(layers) - 1:
-            nodes.append(helper.make_node("Tanh", [out], [f"h{k}"]))
-            last = f"h{k}"
+    # the feature's -LOG_OFFSET goes into b0 (the graph scales ln(total) by wN / (3 ln 10))
+    layers = [(w0, np.asarray(b0) - LOG_OFFSET * np.asarray(wn)[0]), *layers[1:]]
+    more, more_inits, _ = export.tanh_layers(layers, "z0s", SHIFT_OUTPUT)
+    nodes += more
+    inits += more_inits
     graph = helper.make_graph(
         nodes, name,
         [helper.make_tensor_value_info(MARG_INPUT, TensorProto.FLOAT, ["batch", p]),

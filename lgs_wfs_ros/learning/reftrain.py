@@ -64,19 +64,9 @@ def build_model(layers, pixels: int, gain: float, metadata: dict, name: str = "a
     nodes = [helper.make_node("MatMul", [export.INPUT_NAME, "Wp"], ["zp"]),
              helper.make_node("MatMul", [REF_INPUT, "Wr"], ["zr"]),
              helper.make_node("Add", ["zp", "zr"], ["z0s"])]
-    last = "z0s"
-    for k, (w, b) in enumerate(layers):
-        if k > 0:
-            inits.append(numpy_helper.from_array(np.asarray(w, np.float32), f"W{k}"))
-            nodes.append(helper.make_node("MatMul", [last, f"W{k}"], [f"z{k}m"]))
-            last = f"z{k}m"
-        out = export.OUTPUT_NAME if k == len(layers) - 1 else f"z{k}"
-        inits.append(numpy_helper.from_array(np.asarray(b, np.float32), f"b{k}"))
-        nodes.append(helper.make_node("Add", [last, f"b{k}"], [out]))
-        last = out
-        if k < len(layers) - 1:
-            nodes.append(helper.make_node("Tanh", [out], [f"h{k}"]))
-            last = f"h{k}"
+    more, more_inits, _ = export.tanh_layers(layers, "z0s", export.OUTPUT_NAME)
+    nodes += more
+    inits += more_inits
     graph = helper.make_graph(
         nodes, name,
         [helper.make_tensor_value_info(export.INPUT_NAME, TensorProto.FLOAT, ["batch", npx]),
