@@ -160,6 +160,38 @@ def test_recorder_writes_a_readable_bag(ros, tmp_path):
     np.testing.assert_array_equal(images[3], frames[3])
 
 
+def test_recorder_lingers_until_every_frame_has_its_slopes(ros, tmp_path):
+    """After the frame budget the recorder closes as soon as the slopes topic has a slope
+    for each frame (not after the whole linger_s), and waits while one is missing."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+
+    out = tmp_path / "rec.mcap"
+    rig = Rig(ros)
+    slopes_pub = rig.node.create_publisher(Image, "/cog/slopes", qos.SLOPES)
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(out)), Parameter("frames", value=3),
+        Parameter("linger_s", value=30.0), Parameter("discover", value=False),
+        Parameter("topics", value=["/wfs/frame", "/wfs/sensor", "/cog/slopes"])]))
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 1, timeout=10)
+    assert wait_for(lambda: slopes_pub.get_subscription_count() >= 1, timeout=10)
+    grid = np.zeros((SMALL.grid, SMALL.grid, 2), np.float32)
+    for k in range(3):
+        rig.send(small_frame(SMALL, k), 1000 + k)
+        if k < 2:
+            slopes_pub.publish(bags.encode_image(grid, 1000 + k))
+    assert wait_for(lambda: rec.budget_reached, timeout=10)
+    time.sleep(1.0)
+    assert not rec.done                                # the last frame's slope is missing
+    start = time.monotonic()
+    slopes_pub.publish(bags.encode_image(grid, 1002))
+    assert wait_for(lambda: rec.done, timeout=10)
+    assert time.monotonic() - start < 5.0              # not the 30 s linger
+    assert bags.BagReader(out).topics()["/cog/slopes"][1] == 3
+
+
 def test_recorder_keeps_names_not_paths_of_descriptions(ros, tmp_path):
     """A centroider description naming a model by its absolute path is recorded with the
     file name only (bags carry names, not this machine's paths); other fields untouched."""

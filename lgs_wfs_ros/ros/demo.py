@@ -52,7 +52,8 @@ def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, s
     topics += [f"/{a}/{t}" for a in algorithms for t in ("slopes", "centroider")]
     specs = [NodeSpec("recorder_node", "wfs", {
         "output": str(bag), "overwrite": True, "topics": topics, "discover": False,
-        "frames": frames, "frame_every": frame_every, "linger_s": 2.0})]
+        # closes as soon as every centroider has answered every frame; 15 s for a slow start
+        "frames": frames, "frame_every": frame_every, "linger_s": 15.0})]
     for name in algorithms:
         params = {"algorithm": name}
         if name == "ann":

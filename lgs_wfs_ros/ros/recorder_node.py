@@ -61,6 +61,8 @@ RECORDER_DRAIN = 256
 # publishers but the recorder had not taken yet (a backlog on a loaded machine) reaches the
 # bag. Once, in a loaded full run, the soak lost the last 17 slopes that way.
 STOP_LINGER_S = 1.0
+# after the frame budget, how often the linger checks whether every slopes topic is complete
+LINGER_POLL_S = 0.05
 
 
 def _namespace(topic: str) -> str:
@@ -104,8 +106,10 @@ class RecorderNode(Node):
                            low=0, high=1000000)
         parameters.declare(self, "frames", 0, "Stop after this many frames received "
                            "(0: record until interrupted).", low=0, high=2**31 - 1)
-        parameters.declare(self, "linger_s", 1.0, "After the frame budget, keep recording this "
-                           "long so slopes of the last frames arrive.", low=0.0, high=60.0)
+        parameters.declare(self, "linger_s", 1.0, "After the frame budget, keep recording until "
+                           "every slopes (and truth) topic has one for each frame, this long at "
+                           "most.",
+                           low=0.0, high=60.0)
         parameters.declare(self, "chunk_kb", 4096, "MCAP chunk size, kB: a crash or a full disk "
                            "loses at most the open chunk.", low=16, high=1 << 20, read_only=True)
         parameters.declare(self, "compression", "zstd", "Chunk compression.",
@@ -356,8 +360,10 @@ class RecorderNode(Node):
         if kind == "frame" and budget and self.frames_seen >= budget:
             self.budget_reached = True
             linger = self.get_parameter("linger_s").value
-            self.get_logger().info(f"frame budget of {budget} reached; closing in {linger} s")
-            self._linger_timer = self.create_timer(linger, self._end_linger)
+            self.get_logger().info(f"frame budget of {budget} reached; closing when every "
+                                   f"slopes topic has {budget}, in {linger} s at most")
+            self._linger_deadline = time.monotonic() + linger
+            self._linger_timer = self.create_timer(LINGER_POLL_S, self._check_linger)
 
     def _on_sensor(self, topic, cdr):
         """Keep the namespace's sensor description (the geometry of its frames)."""
@@ -415,9 +421,18 @@ class RecorderNode(Node):
             self.get_logger().error(f"frame not cut into subapertures (no blocks written): {reason}")
         self.skip_reason = reason
 
-    def _end_linger(self):
-        self._linger_timer.cancel()
-        self.close()
+    def _check_linger(self):
+        """After the frame budget: close once every recorded slopes topic has a slope for
+        each frame of the budget (its centroider answered them all) and every truth topic
+        a truth, or at ``linger_s``."""
+        budget = self.get_parameter("frames").value
+        kinds = {t: t.rsplit("/", 1)[-1] for t in self.recorded}
+        per_frame = [t for t, k in kinds.items() if k in ("slopes", "true_slopes")]
+        complete = ("slopes" in kinds.values()
+                    and all(self.recorded[t] >= budget for t in per_frame))
+        if complete or time.monotonic() >= self._linger_deadline:
+            self._linger_timer.cancel()
+            self.close()
 
     def _fail(self, reason: str):
         self.failed = reason
