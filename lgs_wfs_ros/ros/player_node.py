@@ -273,17 +273,18 @@ class PlayerNode(FrameSource, Node):
         frame (during the start delay): read while playing, a chunk (CRC check and copy) cost
         ~1.1 ms a full-pupil frame, so at 800 Hz the whole first pass went out late and in
         bursts (40-66 frames more than 2 ms late, most of a 10 s run's 1 % latency tail)."""
-        if not self.get_parameter("loop").value or self._cache is not None:
+        budget = self.get_parameter("cache_mb").value * 2**20
+        if not self.get_parameter("loop").value or not budget or self._cache is not None:
             return
-        budget, size, cache = self.get_parameter("cache_mb").value * 2**20, 0, []
-        start = time.monotonic()
+        size, cache, start = 0, [], time.monotonic()
         try:
             for topic, _type, _log, _pub, cdr in self.reader.messages(list(self.sources)):
+                if self._stop.is_set():
+                    return
                 size += len(cdr)
-                if size > budget or self._stop.is_set():   # too big: streamed every pass
-                    if size > budget:
-                        self.get_logger().info(f"bag over cache_mb ({budget / 2**20:g} MB): "
-                                               "every pass read from the file")
+                if size > budget:
+                    self.get_logger().info(f"bag over cache_mb ({budget / 2**20:g} MB): "
+                                           "every pass read from the file")
                     return
                 cache.append((self.sources[topic], cdr))
         except bags.BagError:            # damaged: played from the file up to the damage,
