@@ -3,7 +3,7 @@
 import pytest
 
 from lgs_wfs_ros.centroiding import ALGORITHMS, options
-from lgs_wfs_ros.centroiding import _CLASSES
+from lgs_wfs_ros.centroiding import _CLASSES, CMF, GridCMF, make_centroider
 from lgs_wfs_ros.sensor import Sensor
 
 
@@ -19,9 +19,43 @@ def test_table_covers_every_algorithm_and_only_real_options():
 def test_defaults_build_and_match_the_class(algorithm):
     sensor = Sensor.paper_single("polar")
     built = options.build(algorithm, sensor)
-    plain = _CLASSES[algorithm](sensor)
+    plain = make_centroider(algorithm, sensor)
+    assert type(built) is type(plain)
+    # the grid cmf records what applies to it: not the single filter's own options
+    skip = set(CMF.SINGLE_DEFAULTS) - {"reference"} if isinstance(built, GridCMF) else set()
     for key, value in options.defaults(algorithm).items():
-        assert built.options[key] == plain.options[key], (algorithm, key)
+        if key in skip:
+            assert key not in built.options, (algorithm, key)
+        else:
+            assert built.options[key] == plain.options[key], (algorithm, key)
+
+
+def test_cmf_is_the_grid_of_filters_with_the_pupil_reference_and_single_otherwise():
+    sensor = Sensor.paper_single("polar")
+    assert isinstance(options.build("cmf", sensor), GridCMF)
+    assert isinstance(options.build("cmf", sensor, {"filters": "grid"}), GridCMF)
+    for given in ({"filters": "single"}, {"reference": "history"}, {"reference": "model"}):
+        c = options.build("cmf", sensor, given)
+        assert type(c) is CMF and c.options["filters"] == "single", given
+    grid = options.build("cmf", sensor)
+    assert grid.describe()["algorithm"] == "cmf"
+    assert grid.describe()["options"]["filters"] == "grid"
+    # what it records builds the same estimator again (replay uses the recorded options)
+    again = options.build("cmf", sensor, {k: v for k, v in grid.describe()["options"].items()
+                                          if k not in ("background", "read_noise_e")})
+    assert isinstance(again, GridCMF) and again.options == grid.options
+
+
+@pytest.mark.parametrize("given, match", [
+    ({"filters": "grid", "reference": "history"}, "reference=pupil"),
+    ({"linearize": False}, "linearize applies to filters=single"),
+    ({"weighting": "image"}, "weighting applies to filters=single"),
+    ({"filters": "single", "grid": 3}, "grid applies to filters=grid"),
+    ({"reference": "model", "picks": 1}, "picks applies to filters=grid"),
+])
+def test_cmf_refuses_an_option_its_filters_would_ignore(given, match):
+    with pytest.raises(ValueError, match=match):
+        options.build("cmf", Sensor.paper_single("polar"), given)
 
 
 def test_every_choice_is_accepted_by_its_class():
@@ -32,7 +66,10 @@ def test_every_choice_is_accepted_by_its_class():
             for value in opt.choices:
                 if (opt.name, value) == ("reference", "static"):
                     continue   # needs an image from Python; the class tests cover it
-                options.build(algorithm, sensor, {opt.name: value})
+                # the single filter's own options are refused by the grid cmf (tested below)
+                single = algorithm == "cmf" and opt.name in CMF.SINGLE_DEFAULTS
+                options.build(algorithm, sensor, {opt.name: value,
+                                                  **({"filters": "single"} if single else {})})
 
 
 def test_parameters_map_to_options_with_sentinels_dropped():

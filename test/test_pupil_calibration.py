@@ -178,7 +178,7 @@ def test_calibrated_estimators_are_unbiased_on_a_held_out_family(detector, launc
 
 def test_pupil_reference_installs_exact_derivatives_and_follows_refits():
     s = SMALL.replace(detector="polar")
-    c = table.build("cmf", s, {"pupil_period": 2})
+    c = table.build("cmf", s, {"pupil_period": 2, "filters": "single"})
     assert c.options["reference"] == "pupil" and c.weighting == "model" and c.linearize
     img, dx, dy, flux = c.pupil.counts()
     np.testing.assert_allclose(c.ref.images, img + c.background)
@@ -286,13 +286,13 @@ def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
     the same frames."""
     import threading
     s, frames = _narrow_polar_frames(seed=5, count=6)
-    inline = table.build("cmf", s, {"pupil_period": 2})
-    live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True})
+    inline = table.build("cmf", s, {"pupil_period": 2, "filters": "single"})
+    live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True, "filters": "single"})
     gate, prepare = threading.Event(), live.pupil.prepare
     live.pupil.prepare = lambda cal: (gate.wait(60), prepare(cal))[1]
     v0 = live.ref.version
     ref_inline = [inline.centroid(f) for f in frames]
-    before = table.build("cmf", s, {"pupil_period": 1000})      # never refits
+    before = table.build("cmf", s, {"pupil_period": 1000, "filters": "single"})  # never refits
     ref_before = [before.centroid(f) for f in frames]
     for k, f in enumerate(frames[:5]):                           # the refit starts at frame 2
         np.testing.assert_array_equal(live.centroid(f), ref_before[k])

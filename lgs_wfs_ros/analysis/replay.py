@@ -49,7 +49,9 @@ def _namespaces(algorithms, existing):
 
 def recorded_options(reader, names) -> dict:
     """``{algorithm: options}`` from the bag's centroider descriptions (the last one of each
-    algorithm, in file order), restricted to the options the table knows."""
+    algorithm, in file order), restricted to the options the table knows. A cmf recorded
+    without ``filters`` (before the grid of filters became its default) is the single
+    filter it was live."""
     from ..centroiding import options as table
     out = {}
     for topic in names["centroider"].values():
@@ -58,6 +60,8 @@ def recorded_options(reader, names) -> dict:
             if alg in table.OPTIONS and isinstance(d.get("options"), dict):
                 known = {o.name for o in table.OPTIONS[alg]}
                 out[alg] = {k: v for k, v in d["options"].items() if k in known}
+    if "cmf" in out and "filters" not in out["cmf"]:
+        out["cmf"]["filters"] = "single"     # recorded before the grid became cmf's default
     return out
 
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from .ann import ANN, resolve_model
 from .base import Centroider
-from .cmf import CMF
+from .cmf import CMF, uses_grid
 from .cog import CoG, TCoG, WCoG
 from .correlation import Correlation
-from .gmf import GMF
+from .gmf import GMF, GridCMF
 from .ml import ML
 from .crb import crb, crb_covariance, crb_of, fisher, model_derivatives
 
@@ -29,6 +29,9 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
         name: one of :data:`ALGORITHMS`.
         sensor: the :class:`lgs_wfs_ros.sensor.Sensor`.
         **options: algorithm options (see each class); ``None`` values mean "default".
+            ``cmf`` is :class:`GridCMF` when its options ask for the grid of filters
+            (:func:`.cmf.uses_grid`: the default, with the pupil reference), else
+            :class:`CMF`, the single filter.
 
     Raises:
         ValueError: unknown name or bad option, with the reason.
@@ -36,12 +39,13 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
     if name not in _CLASSES:
         raise ValueError(f"unknown centroiding algorithm {name!r}; choose one of {', '.join(ALGORITHMS)}")
     options = {k: v for k, v in options.items() if v is not None}
+    cls = GridCMF if name == "cmf" and uses_grid(options) else _CLASSES[name]
     try:
-        return _CLASSES[name](sensor, **options)
+        return cls(sensor, **options)
     except TypeError as exc:   # e.g. an option of the wrong kind reaching numpy
         raise ValueError(f"{name}: bad options {options}: {exc}") from exc
 
 
 __all__ = ["ALGORITHMS", "make_centroider", "Centroider", "CoG", "TCoG", "WCoG", "CMF",
-           "Correlation", "ANN", "ML", "GMF", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
+           "Correlation", "ANN", "ML", "GMF", "GridCMF", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
            "model_derivatives"]

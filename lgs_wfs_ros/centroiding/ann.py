@@ -25,6 +25,12 @@ is accepted too):
                             sums of the reference (unit sum), its output ``(batch, 1)`` the
                             shift along e; block y (across e: the core alone) is the
                             pupil-calibrated CoG of the row sums (``learning/margtrain.py``)
+``lgs_wfs.hyper``           bool (default false): a marginals model whose reference sets
+                            per-subaperture filters (``learning/hypertrain.py``): the graph's
+                            tensors ``lgs_wfs.hyper_outputs`` (default ``["filters", "fbias"]``)
+                            depend on the reference input alone; the centroider cuts the graph
+                            there (:func:`split_hyper`), runs the reference part once per
+                            calibration refit and feeds its outputs to the frame part
 ``lgs_wfs.input_name``      name of the pixel input (default: the first input)
 ``lgs_wfs.training``        free-form JSON, reported by ``describe()``
 ``lgs_wfs.domain``          the training domain (:mod:`.domain`): radius range, detectors,
@@ -151,7 +157,8 @@ def read_metadata(meta_map: dict) -> dict:
     md = {"detector": "any", "input": "pixels", "input_norm": "sum", "output_scale": 1.0,
           "output_frame": "detector", "conditioning": "none", "conditioning_input": "e",
           "conditioning_frame": "detector",
-          "input_name": None, "training": None, "domain": None}
+          "input_name": None, "training": None, "domain": None,
+          "hyper": False, "hyper_outputs": ["filters", "fbias"]}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
@@ -174,6 +181,13 @@ def read_metadata(meta_map: dict) -> dict:
                                        or md["conditioning"] != "reference"):
         raise ValueError("ann: a marginals model must declare lgs_wfs.detector polar and "
                          "lgs_wfs.conditioning reference")
+    if not isinstance(md["hyper"], bool):
+        raise ValueError(f"ann: metadata lgs_wfs.hyper must be true or false, got {md['hyper']!r}")
+    if md["hyper"] and md["input"] != "marginals":
+        raise ValueError("ann: a hyper model must be a marginals model (lgs_wfs.input marginals)")
+    if not (isinstance(md["hyper_outputs"], list) and md["hyper_outputs"]
+            and all(isinstance(v, str) for v in md["hyper_outputs"])):
+        raise ValueError("ann: metadata lgs_wfs.hyper_outputs must be a list of tensor names")
     return md
 
 
@@ -241,6 +255,40 @@ def split_reference(model, ref_input: str):
     g.input.remove(old)
     g.input.append(helper.make_tensor_value_info(code, onnx.TensorProto.FLOAT, ["batch", w.shape[1]]))
     return m, w
+
+
+def split_hyper(model, ref_input: str, outputs) -> tuple:
+    """Cut a hyper model (``lgs_wfs.hyper``) at its reference-only tensors.
+
+    Args:
+        model: ``onnx.ModelProto`` with inputs ``ref_input`` and the frame's input(s), and
+            intermediate tensors ``outputs`` computed from ``ref_input`` alone.
+
+    Returns:
+        ``(refit, frame)`` ``ModelProto``: ``refit`` maps ``ref_input`` to ``outputs`` (run
+        once per calibration refit); ``frame`` takes the other inputs and ``outputs`` and
+        gives the model's outputs.
+
+    Raises:
+        ValueError: the graph cannot be cut there (a tensor missing, or the frame part
+            still reading the reference).
+    """
+    import onnx
+    from onnx.utils import Extractor
+    outputs = list(outputs)
+    try:
+        inferred = onnx.shape_inference.infer_shapes(model)
+        ex = Extractor(inferred)
+        refit = ex.extract_model([ref_input], outputs)
+        others = [i.name for i in model.graph.input if i.name != ref_input]
+        frame = ex.extract_model(others + outputs, [o.name for o in model.graph.output])
+    except Exception as exc:  # onnx raises assorted types for a graph it cannot cut
+        raise ValueError(f"ann: cannot split the hyper model at {outputs}: {exc}") from exc
+    if any(ref_input in n.input for n in frame.graph.node):
+        raise ValueError(f"ann: the hyper model's frame part still reads {ref_input!r}")
+    for m in (refit, frame):
+        m.ClearField("metadata_props")
+    return refit, frame
 
 
 def fold_sum_normalisation(model, input_name: str, width: int):
@@ -341,8 +389,14 @@ class ANN(Centroider):
         self.session = open_session(self.path)
         self.meta = read_metadata(self.session.get_modelmeta().custom_metadata_map)
         md = self.meta
-        self.pupil, self._graph = None, None
-        if md["conditioning"] == "reference":           # the reference enters once per refit
+        self.pupil, self._graph, self._refit = None, None, None
+        if md["hyper"]:                                  # the reference sets filters once per refit
+            import onnx
+            refit, frame = split_hyper(onnx.load(str(self.path)), md["conditioning_input"],
+                                       md["hyper_outputs"])
+            self._refit = open_session(refit.SerializeToString())
+            self.session = open_session(frame.SerializeToString())
+        elif md["conditioning"] == "reference":           # the reference enters once per refit
             import onnx
             self._graph, self._ref_w = split_reference(onnx.load(str(self.path)), md["conditioning_input"])
             self.session = open_session(self._graph.SerializeToString())
@@ -362,7 +416,13 @@ class ANN(Centroider):
         _check_width(inputs[self.input_name], self.p if self.marginals else self.p * self.p,
                      "pixel input", self.n)
         self.cond = None
-        if md["conditioning"] != "none":
+        if md["hyper"]:
+            missing = [nm for nm in md["hyper_outputs"] if nm not in inputs]
+            if missing:
+                raise ValueError(f"ann: the hyper model's frame part lacks inputs {missing}")
+            self.pupil = pupil_cal.from_options(sensor, options, sensor.background_e)
+            self.cond = ("hyper", self._reference_code())
+        elif md["conditioning"] != "none":
             cname = md["conditioning_input"]
             if cname not in inputs:
                 raise ValueError(f"ann: conditioning {md['conditioning']!r} needs an input named "
@@ -403,6 +463,10 @@ class ANN(Centroider):
         ref = ref.reshape(self.n, -1)
         tot = ref.sum(axis=1, keepdims=True)
         ref = np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
+        if self._refit is not None:                  # hyper: the per-subaperture filters
+            names = self.meta["hyper_outputs"]
+            outs = self._refit.run(names, {self.meta["conditioning_input"]: np.ascontiguousarray(ref)})
+            return {nm: np.ascontiguousarray(v, dtype=np.float32) for nm, v in zip(names, outs)}
         return np.ascontiguousarray(ref @ self._ref_w, dtype=np.float32)
 
     def _observe(self, rows=None, flat=None) -> None:
@@ -527,7 +591,12 @@ class ANN(Centroider):
         if refit:
             self.cond = (self.cond[0], self._reference_code())
         x = np.ascontiguousarray(marg[:, 0])
-        out = self.session.run(None, {self.input_name: x, self.cond[0]: self.cond[1]})[0]
+        feed = {self.input_name: x}
+        if self._refit is not None:
+            feed.update(self.cond[1])
+        else:
+            feed[self.cond[0]] = self.cond[1]
+        out = self.session.run(None, feed)[0]
         if out.shape != (self.n, 1):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 1)}")
         total = marg[:, 1].sum(axis=1, dtype=np.float64)

@@ -118,6 +118,21 @@ def solve_filter(a: np.ndarray, m: np.ndarray, var: np.ndarray, work=None) -> tu
     return r, ok
 
 
+#: ``cmf``'s ``filters`` option: one filter per subaperture at its reference (single, this
+#: class), filters at a grid of reference positions (grid, :class:`.gmf.GridCMF`), or auto:
+#: grid with the pupil reference, single with any other
+FILTERS = ("auto", "grid", "single")
+#: the grid's options and defaults (:class:`.gmf.GMF`)
+GRID_DEFAULTS = {"grid": 5, "spacing_px": 0.5, "picks": 2}
+
+
+def uses_grid(options) -> bool:
+    """True when ``cmf`` options ask for the grid of filters: ``filters`` "grid", or "auto"
+    (the default) with the pupil reference (the default)."""
+    filters = options.get("filters", "auto")
+    return filters == "grid" or (filters == "auto" and options.get("reference", "pupil") == "pupil")
+
+
 class CMF(Centroider):
     """Constrained matched filter (``constrained=False``: plain matched filter).
 
@@ -156,21 +171,32 @@ class CMF(Centroider):
     """
 
     name = "cmf"
-    _allowed = ("reference", "history", "include_current", "update_period", "dither",
-                "constrained", "constraint_px", "weighting", "read_noise_e", "background",
-                "var_floor", "sodium_fwhm_m", "derivative", "linearize", "linearize_extent",
-                *pupil_cal.OPTION_DEFAULTS)
+    #: the options only this single filter takes, with their defaults (``filters="grid"``
+    #: accepts them at these values only: :class:`.gmf.GridCMF`)
+    SINGLE_DEFAULTS = {"reference": "pupil", "history": 5, "include_current": True,
+                       "update_period": 1, "dither": 0.02, "constrained": True,
+                       "constraint_px": 1, "weighting": "auto", "sodium_fwhm_m": 10e3,
+                       "derivative": "fourier", "linearize": True, "linearize_extent": 1.1}
+    _allowed = (*SINGLE_DEFAULTS, "read_noise_e", "background", "var_floor", "filters",
+                *GRID_DEFAULTS, *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
+        filters = choice("filters", options.pop("filters", "single"), FILTERS)
+        if filters == "grid":
+            raise ValueError("cmf: this class is the single filter; filters=grid is "
+                             "gmf.GridCMF (make_centroider('cmf', ...) picks it)")
+        for key, default in GRID_DEFAULTS.items():
+            if options.pop(key, default) != default:
+                raise ValueError(f"cmf: option {key} applies to filters=grid, not to the "
+                                 f"single filter (filters={filters})")
         kernels.warm_up()
-        o = {"reference": "pupil", "history": 5, "include_current": True, "update_period": 1,
-             "dither": 0.02, "constrained": True, "constraint_px": 1, "weighting": "auto",
-             "read_noise_e": float(sensor.read_noise_e), "background": float(sensor.background_e),
-             "var_floor": 1.0, "sodium_fwhm_m": 10e3, "derivative": "fourier",
-             "linearize": True, "linearize_extent": 1.1, **pupil_cal.OPTION_DEFAULTS}
+        o = {**self.SINGLE_DEFAULTS, "read_noise_e": float(sensor.read_noise_e),
+             "background": float(sensor.background_e), "var_floor": 1.0,
+             **pupil_cal.OPTION_DEFAULTS}
         o.update(options)
         super().__init__(sensor, **o)
+        self.options["filters"] = "single"
         self.dither = number("dither", o["dither"], minimum=0, strict=True)
         if not isinstance(o["constrained"], (bool, np.bool_)):
             raise ValueError(f"option constrained must be true or false, got {o['constrained']!r}")

@@ -39,7 +39,7 @@ from . import kernels
 from ..optics import fast_frames, geometry
 from ..optics.model_spot import shift_to_detector
 from .base import check_options, number
-from .cmf import solve_filter
+from .cmf import CMF, FILTERS, solve_filter
 from .cog import CoG, TabledCoG
 
 #: shift of the central differences that give each reference's derivatives, px
@@ -73,13 +73,13 @@ class GMF(TabledCoG):
         spacing = number("spacing_px", options.pop("spacing_px", 0.5), minimum=0, strict=True)
         grid = number("grid", options.pop("grid", 5), minimum=1, integer=True)
         if grid % 2 == 0:
-            raise ValueError(f"gmf: grid must be odd (a position at the centre), got {grid}")
+            raise ValueError(f"{self.name}: grid must be odd (a position at the centre), got {grid}")
         if spacing * (grid // 2) > 0.5 * sensor.pixels:
-            raise ValueError(f"gmf: the grid reaches {spacing * (grid // 2)} px, beyond half "
+            raise ValueError(f"{self.name}: the grid reaches {spacing * (grid // 2)} px, beyond half "
                              f"the field ({0.5 * sensor.pixels} px)")
         picks = number("picks", options.pop("picks", 2), minimum=1, integer=True)
         if picks > 3:
-            raise ValueError(f"gmf: picks must be 1, 2 or 3, got {picks}")
+            raise ValueError(f"{self.name}: picks must be 1, 2 or 3, got {picks}")
         rn = number("read_noise_e", options.pop("read_noise_e", float(sensor.read_noise_e)),
                     minimum=0)
         floor = number("var_floor", options.pop("var_floor", 1.0), minimum=0, strict=True)
@@ -205,4 +205,36 @@ class GMF(TabledCoG):
         return d
 
 
-__all__ = ["GMF", "DERIVATIVE_STEP"]
+class GridCMF(GMF):
+    """``cmf`` with ``filters="grid"`` (its default with the pupil reference): the grid of
+    constrained matched filters above, under cmf's name and options.
+
+    Each filter is a CMF's (unit gain, zero cross-talk, blind to the flux) built at one grid
+    position; the single filter's own options (:attr:`.cmf.CMF.SINGLE_DEFAULTS`: reference,
+    weighting, linearize, ...) are accepted at their defaults only, so a setting that would
+    be silently ignored is refused with the reason. ``describe()`` records ``filters:
+    grid`` and the grid's options: a bag replays through the same estimator.
+    """
+
+    name = "cmf"
+
+    def __init__(self, sensor, **options):
+        check_options(self.name, options, (*GMF._public, "filters", *CMF.SINGLE_DEFAULTS))
+        filters = options.pop("filters", "grid")
+        if filters not in FILTERS or filters == "single":
+            raise ValueError(f"cmf: GridCMF is filters=grid, got filters={filters!r}")
+        reference = options.pop("reference", "pupil")
+        if reference != "pupil":
+            raise ValueError(f"cmf: filters=grid renders its filters from the pupil "
+                             f"calibration (reference=pupil), got reference={reference!r}; "
+                             f"use filters=single for a {reference} reference")
+        for key, default in CMF.SINGLE_DEFAULTS.items():
+            if key in options and options.pop(key) != default:
+                raise ValueError(f"cmf: option {key} applies to filters=single (one filter "
+                                 f"at the reference); with filters=grid leave it at "
+                                 f"{default!r} or set filters=single")
+        super().__init__(sensor, **options)
+        self.options.update(filters="grid", reference="pupil")
+
+
+__all__ = ["GMF", "GridCMF", "DERIVATIVE_STEP"]

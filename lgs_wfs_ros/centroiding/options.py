@@ -123,7 +123,19 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
          {"choices": ("model", "analytic", "none")}),
     ),
     "cmf": _rows(
-        "cmf", *_HISTORY,
+        "cmf",
+        ("filters", "auto", "Matched filters per subaperture: a grid of them at reference "
+         "positions spacing_px apart, the one nearest each spot applied (grid), one at the "
+         "reference, its response linearised (single, the paper's kind), or auto (grid with "
+         "the pupil reference, single with any other).", {"choices": ("auto", "grid", "single")}),
+        ("grid", 5, "filters=grid: reference positions per axis, odd (5: +-1 px at 0.5 px).",
+         {"low": 1, "high": 15}),
+        ("spacing_px", 0.5, "filters=grid: distance between the filters' reference positions, "
+         "pixels.", {"low": 0.05, "high": 4.0}),
+        ("picks", 2, "filters=grid: filter choices per block: 1 takes the position nearest "
+         "the calibrated CoG; 2 picks again by that filter's measurement (3: once more).",
+         {"low": 1, "high": 3}),
+        *_HISTORY,
         ("dither", 0.02, "Shift used to build the filter's derivative images, pixels.",
          {"low": 1e-4, "high": 1.0}),
         ("constrained", True, "Constrain the filter to unit gain and zero cross-talk."),

@@ -1,0 +1,367 @@
+"""Reference-conditioned filters for the marginal network (``ann_hyper``, polar detector; probe).
+
+``ann_marg``'s first layer is linear in (column sums, reference): it cannot build a matched
+filter from the reference. Here the reference sets the first layer's weights. At each
+calibration refit a small "hyper" network maps each subaperture's reference marginal
+``r`` (``p`` values, unit sum) to ``K`` filters ``F (K, p)`` and biases ``c (K,)``; per frame
+a block's normalised column sums ``u = m / N`` go through its subaperture's filters and a
+small tanh MLP gives the shift along e (block x)::
+
+    refit:  q = [p r, log(p r + EPS)]  -> tanh MLP -> dF (K, p), dc (K)
+            F = F0 + dF,  c = c0 + Wr (p r) + dc - F (p r)      (so that z = F p (u - r) + ...)
+    frame:  z = (p F) u + c + wN lf,  lf = log10(N) / 3 - 0.8
+            [optional ``templates``: J more filters log(S_j r + EPS_T) (the reference moved by
+             t_j px; z_j = their dot with u, a log-likelihood of shift t_j, times a learned
+             per-filter gain N^a_j)]
+            h = tanh(z) -> tanh layers -> shift (batch, 1)
+
+With ``dF = 0`` this is ``ann_marg``'s form (its first layer ``Wd p (u - r) + Wref p r``).
+
+Training: :func:`.margtrain.generate` spots (the same prior, seeds, check and monitor sets
+as ``ann_marg``), Adam, MSE, cosine learning rate, best monitor weights kept.
+
+Export: one ONNX graph with inputs ``marginals (batch, p)`` and ``reference (batch, p)``
+and the intermediate tensors ``filters (batch, K', p)`` and ``fbias (batch, K')`` computed
+from the reference alone, and ``gain (K',)`` exponents; metadata ``lgs_wfs.hyper = true``.
+The centroider (:mod:`..centroiding.ann`) cuts it into a refit graph (reference ->
+filters, fbias) and a frame graph (marginals, filters, fbias -> shift).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import margtrain, refdata
+
+EPS = 0.02                 # log(p r + EPS): the hyper network's second input
+EPS_T = 2e-3               # template filters: log(S_j r + EPS_T), unit-sum r
+FILTERS, FBIAS = "filters", "fbias"
+
+
+@dataclass
+class HyperSpec:
+    pixels: int = 16
+    k: int = 32                      # learned filters
+    hyper: tuple = (64, 64)          # hyper MLP widths
+    trunk: tuple = (32,)             # per-frame tanh layers after the filters
+    templates: tuple = ()            # template shifts, px (empty: none)
+    head_scale: float = 0.1          # initial scale of the hyper head
+    epochs: int = 40
+    batch: int = 512
+    lr: float = 2e-3
+    seed: int = 16
+
+
+def shift_matrices(p: int, shifts) -> np.ndarray:
+    """``(J, p, p)``: ``S_j r`` = ``r`` moved by ``t_j`` px (linear interpolation, zero outside)."""
+    out = np.zeros((len(shifts), p, p))
+    for j, t in enumerate(shifts):
+        for i in range(p):
+            x = i - t                              # output pixel i reads input at i - t
+            a = math.floor(x)
+            f = x - a
+            for b, w in ((a, 1 - f), (a + 1, f)):
+                if 0 <= b < p:
+                    out[j, i, b] += w
+    return out
+
+
+def _torch_module(spec: HyperSpec):
+    import torch
+    from torch import nn
+
+    class Hyper(nn.Module):
+        def __init__(self):
+            super().__init__()
+            torch.manual_seed(spec.seed)
+            p, k = spec.pixels, spec.k
+            self.p, self.k = p, k
+            self.base = nn.Linear(p, k)                      # F0, c0
+            self.wref = nn.Linear(p, k, bias=False)          # Wr (p r) into the bias
+            self.wn = nn.Parameter(torch.zeros(k + len(spec.templates)))
+            widths = (2 * p, *spec.hyper)
+            layers = []
+            for a, b in zip(widths[:-1], widths[1:]):
+                layers += [nn.Linear(a, b), nn.Tanh()]
+            self.hyper = nn.Sequential(*layers)
+            self.head = nn.Linear(widths[-1], k * p + k)
+            with torch.no_grad():
+                self.head.weight.mul_(spec.head_scale)
+                self.head.bias.zero_()
+            j = len(spec.templates)
+            self.j = j
+            if j:
+                self.register_buffer("shift", torch.tensor(shift_matrices(p, spec.templates), dtype=torch.float32))
+                self.tgain = nn.Parameter(torch.zeros(j))     # exponent a_j: z_j * N^a_j ... (scaled)
+                self.tscale = nn.Parameter(torch.full((j,), 1.0))
+                self.tbias = nn.Parameter(torch.zeros(j))
+            trunk = (k + j, *spec.trunk)
+            mods = []
+            for a, b in zip(trunk[:-1], trunk[1:]):
+                mods += [nn.Linear(a, b), nn.Tanh()]
+            mods.append(nn.Linear(trunk[-1], 1))
+            self.trunk = nn.Sequential(*mods)
+
+        def filters(self, r):
+            """(F (n, k, p) acting on p (u - r), bias (n, k)) from unit-sum r (n, p)."""
+            pr = self.p * r
+            q = torch.cat([pr, torch.log(pr + EPS)], dim=1)
+            out = self.head(self.hyper(q))
+            df = out[:, :self.k * self.p].reshape(-1, self.k, self.p)
+            dc = out[:, self.k * self.p:]
+            f = self.base.weight.unsqueeze(0) + df
+            c = self.base.bias + self.wref(pr) + dc
+            return f, c
+
+        def templates(self, r):
+            """(T (n, j, p) log templates, acting on u)."""
+            t = torch.einsum("jab,nb->nja", self.shift, r)
+            return torch.log(t + EPS_T)
+
+        def forward(self, u, r, lf):
+            f, c = self.filters(r)
+            d = self.p * (u - r)
+            z = torch.einsum("nkp,np->nk", f, d) + c
+            if self.j:
+                t = self.templates(r)
+                zt = torch.einsum("njp,np->nj", t, u)
+                zt = zt - (torch.einsum("njp,np->nj", t, r))      # centred at the reference
+                # likelihood scale N: z_j * tscale_j * 10^(3 lf tgain_j) (lf = log10 N / 3 - 0.8)
+                zt = zt * self.tscale * torch.exp(self.tgain * (lf + 0.8) * 3 * math.log(10.0)) + self.tbias
+                z = torch.cat([z, zt], dim=1)
+            z = z + self.wn * lf
+            return self.trunk(torch.tanh(z))
+
+    return Hyper()
+
+
+def _tensors(pairs):
+    import torch
+    tot = np.maximum(pairs.marg.sum(axis=1, keepdims=True, dtype=np.float64), 1.0)
+    u = (pairs.marg / tot).astype(np.float32)
+    lf = (np.log10(tot) / 3.0 - margtrain.LOG_OFFSET).astype(np.float32)
+    return (torch.from_numpy(u), torch.from_numpy(np.ascontiguousarray(pairs.refs, dtype=np.float32)),
+            torch.from_numpy(lf), torch.from_numpy(np.ascontiguousarray(pairs.y, dtype=np.float32)))
+
+
+def _mae(net, t) -> float:
+    import torch
+    with torch.no_grad():
+        out = torch.cat([net(t[0][a:a + 16384], t[1][a:a + 16384], t[2][a:a + 16384])
+                         for a in range(0, t[0].shape[0], 16384)])
+    return float((out - t[3]).abs().mean())
+
+
+def fit(spec: HyperSpec, data, monitor, log=print, time_budget_s=None):
+    """Train on :class:`.refdata.MarginalPairs` ``data``; returns (net, history)."""
+    import torch
+    torch.set_num_threads(1)
+    net = _torch_module(spec)
+    tr, mon = _tensors(data), _tensors(monitor)
+    n = tr[0].shape[0]
+    g = torch.Generator().manual_seed(spec.seed)
+    opt = torch.optim.Adam(net.parameters(), lr=spec.lr)
+    steps = spec.epochs * math.ceil(n / spec.batch)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(k, steps) / steps)))
+    best, best_state, hist, t0 = math.inf, None, [], time.perf_counter()
+    for ep in range(spec.epochs):
+        perm = torch.randperm(n, generator=g)
+        tot = 0.0
+        for a in range(0, n, spec.batch):
+            idx = perm[a:a + spec.batch]
+            out = net(tr[0][idx], tr[1][idx], tr[2][idx])
+            loss = ((out - tr[3][idx]) ** 2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            tot += float(loss.detach()) * idx.numel()
+        err = _mae(net, mon)
+        if err < best:
+            best, best_state = err, {k: v.clone() for k, v in net.state_dict().items()}
+        hist.append({"epoch": ep, "train_mse": tot / n, "monitor_mae_px": err,
+                     "seconds": time.perf_counter() - t0})
+        log(f"epoch {ep:3d} mse {tot / n:.5f} monitor {err:.5f} ({hist[-1]['seconds']:.0f} s)")
+        if time_budget_s is not None and hist[-1]["seconds"] > time_budget_s:
+            break
+    net.load_state_dict(best_state)
+    return net, hist
+
+
+def n_weights(net) -> dict:
+    """Parameter counts: the refit part (hyper network) and the per-frame part."""
+    refit = sum(p.numel() for m in (net.hyper, net.head, net.base, net.wref) for p in m.parameters())
+    frame = sum(p.numel() for p in net.trunk.parameters()) + net.wn.numel()
+    if net.j:
+        frame += 3 * net.j
+    return {"refit": int(refit), "frame": int(frame), "filters_per_subap": int((net.k + net.j) * (net.p + 1))}
+
+
+# -- export ------------------------------------------------------------------------------------
+def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper"):
+    """One ONNX graph: reference -> (filters, fbias) [refit part]; marginals, filters, fbias ->
+    shift [frame part]. ``filters (batch, K', p)`` act on the raw-sum-normalised column sums
+    ``u``; ``fbias (batch, K')`` holds every per-subaperture constant; the frame part then adds
+    ``wN ln(N)``, multiplies the template rows by ``N^a`` and runs the tanh trunk."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+    p, k, j = spec.pixels, spec.k, len(spec.templates)
+    kk = k + j
+    st = {n_: v.detach().cpu().numpy().astype(np.float64) for n_, v in net.state_dict().items()}
+    f32 = lambda a: np.asarray(a, np.float32)                         # noqa: E731
+    inits, nodes = [], []
+
+    def init(arr, nm, dtype=np.float32):
+        inits.append(numpy_helper.from_array(np.asarray(arr, dtype), nm))
+        return nm
+
+    def node(op, ins, outs, **kw):
+        nodes.append(helper.make_node(op, ins, outs, **kw))
+        return outs[0]
+
+    # ---- refit part: reference (n, p) unit sum ----
+    pr = node("Mul", ["reference", init([p], "c_p")], ["pr"])
+    q = node("Concat", [pr, node("Log", [node("Add", [pr, init([EPS], "c_eps")], ["pr_eps"])], ["log_pr"])],
+             ["q"], axis=1)
+    hyp = [m for m in net.hyper if hasattr(m, "weight")]
+    h = q
+    for i, m in enumerate(hyp):
+        w, b = st[f"hyper.{2 * i}.weight"].T, st[f"hyper.{2 * i}.bias"]
+        h = node("Tanh", [node("Add", [node("MatMul", [h, init(w, f"hw{i}")], [f"hm{i}"]), init(b, f"hb{i}")],
+                                [f"hz{i}"])], [f"hh{i}"])
+    wh, bh = st["head.weight"].T, st["head.bias"]
+    out = node("Add", [node("MatMul", [h, init(wh, "headw")], ["headm"]), init(bh, "headb")], ["head"])
+    df = node("Slice", [out, init([0], "s0", np.int64), init([k * p], "skp", np.int64), init([1], "ax1", np.int64)], ["df"])
+    dc = node("Slice", [out, "skp", init([k * p + k], "skpk", np.int64), "ax1"], ["dc"])
+    f = node("Add", [node("Reshape", [df, init([-1, k, p], "shp_kp", np.int64)], ["df3"]),
+                     init(st["base.weight"], "F0")], ["F"])                        # (n, k, p) on p (u - r)
+    # bias: c0 + Wr pr + dc - F pr
+    fpr = node("Squeeze", [node("MatMul", [f, node("Unsqueeze", [pr, init([2], "ax2", np.int64)], ["pr3"])],
+                                ["fpr3"]), "ax2"], ["fpr"])
+    c = node("Sub", [node("Add", [node("Add", [node("MatMul", [pr, init(st["wref.weight"].T, "Wr")], ["wrpr"]),
+                                               init(st["base.bias"], "c0")], ["c1"]), dc], ["c2"]), fpr], ["c3"])
+    fu = node("Mul", [f, init([p], "c_p2")], ["Fu"])                               # acting on u
+    if j:
+        sm = shift_matrices(p, spec.templates)                  # (j, a, b): S_j r = r @ S_j^T
+        sflat = np.transpose(sm, (2, 0, 1)).reshape(p, j * p)  # r (n, b) @ (b, j*a)
+        t = node("Log", [node("Add", [node("Reshape", [node("MatMul", ["reference", init(sflat, "Sall")], ["sr"]),
+                                                        init([-1, j, p], "shp_jp", np.int64)], ["sr3"]),
+                                      init([EPS_T], "c_epst")], ["sre"])], ["T"])   # (n, j, p) on u
+        tr = node("Squeeze", [node("MatMul", [t, node("Unsqueeze", ["reference", "ax2"], ["r3"])], ["tr3"]), "ax2"], ["tr"])
+        # zt = (T u - T r) * tscale * N^a + tbias: scale the template rows by tscale, bias -T r tscale
+        tscale = st["tscale"]
+        tsc = node("Mul", [t, init(tscale.reshape(1, j, 1), "tscale3")], ["Ts"])
+        tb = node("Mul", [tr, init(-tscale, "mtscale")], ["tb"])
+        fu = node("Concat", [fu, tsc], ["Fall"], axis=1)
+        c = node("Concat", [c, tb], ["call"], axis=1)
+    node("Identity", [fu], [FILTERS])
+    node("Identity", [c], [FBIAS])
+    # ---- frame part: marginals (n, p) raw counts ----
+    tot = node("Max", [node("ReduceSum", ["marginals", init([1], "axis1", np.int64)], ["total"], keepdims=1),
+                       init([1.0], "one")], ["safe"])
+    u = node("Div", ["marginals", tot], ["unit"])
+    z = node("Squeeze", [node("MatMul", [FILTERS, node("Unsqueeze", [u, "ax2"], ["u3"])], ["zu3"]), "ax2"], ["zu"])
+    z = node("Add", [z, FBIAS], ["zc"])
+    logn = node("Log", [tot], ["logn"])
+    if j:
+        # template rows times N^a = exp(a ln N); then + tbias. lf + 0.8 = log10 N / 3: 3 ln10 (lf+0.8) = ln N
+        a = np.concatenate([np.zeros(k), st["tgain"]])
+        g = node("Exp", [node("Mul", [logn, init(a.reshape(1, kk), "tgain")], ["alogn"])], ["gainN"])
+        z = node("Mul", [z, g], ["zg"])
+        tb2 = np.concatenate([np.zeros(k), st["tbias"]])
+        z = node("Add", [z, init(tb2, "tbias")], ["zgb"])
+    # + wN lf = wN (ln N / (3 ln 10) - 0.8)
+    wn = st["wn"]
+    z = node("Add", [z, node("Mul", [logn, init((wn / (3 * math.log(10.0))).reshape(1, kk), "wN")], ["wnl"])], ["z0a"])
+    z = node("Add", [z, init(-0.8 * wn, "wNb")], ["z0"])
+    h = node("Tanh", [z], ["t0"])
+    lins = [m for m in net.trunk if hasattr(m, "weight")]
+    idx = [i for i, m in enumerate(net.trunk) if hasattr(m, "weight")]
+    for n_, (i, m) in enumerate(zip(idx, lins)):
+        w, b = st[f"trunk.{i}.weight"].T, st[f"trunk.{i}.bias"]
+        last = n_ == len(lins) - 1
+        zz = node("Add", [node("MatMul", [h, init(w, f"tw{n_}")], [f"tm{n_}"]), init(b, f"tb{n_}")],
+                  ["shift" if last else f"tz{n_}"])
+        if not last:
+            h = node("Tanh", [zz], [f"th{n_}"])
+    graph = helper.make_graph(
+        nodes, name,
+        [helper.make_tensor_value_info("marginals", TensorProto.FLOAT, ["batch", p]),
+         helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", p])],
+        [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", 1])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)],
+                              producer_name="lgs_wfs_ros.learning")
+    model.ir_version = 8
+    meta = {"lgs_wfs.pixels": p, "lgs_wfs.input": "marginals", "lgs_wfs.input_norm": "none",
+            "lgs_wfs.conditioning": "reference", "lgs_wfs.conditioning_input": "reference",
+            "lgs_wfs.input_name": "marginals", "lgs_wfs.output_scale": 1.0,
+            "lgs_wfs.output_frame": "block", "lgs_wfs.detector": "polar",
+            "lgs_wfs.hyper": True, "lgs_wfs.hyper_outputs": [FILTERS, FBIAS], **metadata}
+    helper.set_model_props(model, {k_: json.dumps(v, sort_keys=True) for k_, v in meta.items()})
+    onnx.checker.check_model(model)
+    return model
+
+
+# -- cached data (probe) ------------------------------------------------------------------------
+def load_pairs(path) -> refdata.MarginalPairs:
+    d = np.load(path)
+    return refdata.MarginalPairs(*[d[k] for k in ("marg", "refs", "y", "r_m", "photons")])
+
+
+def load_chunks(paths) -> refdata.MarginalPairs:
+    parts = [load_pairs(p) for p in paths]
+    return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts])
+                                   for f in ("marg", "refs", "y", "r_m", "photons")])
+
+
+def main(argv=None):
+    import argparse
+    import glob
+
+    import torch
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default="/tmp/probe_ann/data")
+    ap.add_argument("--chunks", type=int, default=2, help="training chunks of 102,400 spots")
+    ap.add_argument("--k", type=int, default=32)
+    ap.add_argument("--hyper", default="64,64")
+    ap.add_argument("--trunk", default="32")
+    ap.add_argument("--templates", default="", help="comma-separated template shifts, px")
+    ap.add_argument("--epochs", type=int, default=40)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--head-scale", type=float, default=0.1)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    ints = lambda s: tuple(int(v) for v in s.split(",") if v)             # noqa: E731
+    spec = HyperSpec(k=a.k, hyper=ints(a.hyper), trunk=ints(a.trunk), epochs=a.epochs, lr=a.lr,
+                     head_scale=a.head_scale,
+                     templates=tuple(float(v) for v in a.templates.split(",") if v))
+    files = sorted(glob.glob(f"{a.data}/train_*.npz"))[:a.chunks]
+    data = load_chunks(files)
+    monitor = load_pairs(f"{a.data}/monitor.npz")
+    check = load_pairs(f"{a.data}/check.npz")
+    print(f"{len(data.y)} spots; spec {asdict(spec)}", flush=True)
+    net, hist = fit(spec, data, monitor, log=lambda s: print(s, flush=True))
+    check_mae = _mae(net, _tensors(check))
+    counts = n_weights(net)
+    training = {"spec": asdict(spec), "samples": int(len(data.y)), "weights": counts,
+                "final_monitor_mae_px": min(h["monitor_mae_px"] for h in hist),
+                "check": {"mean_err_px": check_mae, "n": margtrain.CHECK_N, "seed": margtrain.CHECK_SEED},
+                "fit_seconds": hist[-1]["seconds"]}
+    model = build_model(net, spec, {"lgs_wfs.training": training,
+                                    "lgs_wfs.domain": margtrain.domain(refdata.MARGINAL_SPEC)})
+    out = Path(a.out)
+    out.write_bytes(model.SerializeToString())
+    onnx_mae = float(np.abs(margtrain.predict(out, check) - check.y).mean())
+    torch.save(net.state_dict(), out.with_suffix(".pt"))
+    print(json.dumps({**training, "check_onnx_mae_px": onnx_mae}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
