@@ -92,6 +92,17 @@ def test_set_option_switch_and_refuse_through_the_service(ros, centroider):
     assert centroider.centroider.options["update_period"] == 7
 
 
+def test_cmf_defaults_to_the_grid_and_refuses_a_single_filter_option_with_the_reason(
+        ros, centroider):
+    assert set_param(ros, CENTROIDER, "algorithm", "cmf").successful
+    before = centroider.centroider
+    assert before.describe()["options"]["filters"] == "grid"
+    out = set_param(ros, CENTROIDER, "cmf.linearize", False)
+    assert not out.successful and "filters=single" in out.reason
+    assert centroider.get_parameter("cmf.linearize").value is True
+    assert centroider.centroider is before
+
+
 def test_an_integer_is_taken_for_a_double(ros, centroider):
     res = set_param(ros, CENTROIDER, "cmf.sodium_fwhm_m", 12000)
     assert res.successful, res.reason
