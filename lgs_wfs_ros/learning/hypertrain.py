@@ -205,11 +205,14 @@ def n_weights(net) -> dict:
 
 
 # -- export ------------------------------------------------------------------------------------
-def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper"):
+def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
+                contraction: str = "einsum"):
     """One ONNX graph: reference -> (filters, fbias) [refit part]; marginals, filters, fbias ->
     shift [frame part]. ``filters (batch, K', p)`` act on the raw-sum-normalised column sums
     ``u``; ``fbias (batch, K')`` holds every per-subaperture constant; the frame part then adds
-    ``wN ln(N)``, multiplies the template rows by ``N^a`` and runs the tanh trunk."""
+    ``wN ln(N)``, multiplies the template rows by ``N^a`` and runs the tanh trunk.
+    ``contraction``: the per-block product ``filters u`` as one ``Einsum`` (faster in
+    onnxruntime 1.31) or a batched ``MatMul``."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
     p, k, j = spec.pixels, spec.k, len(spec.templates)
@@ -245,8 +248,10 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper"):
     # bias: c0 + Wr pr + dc - F pr
     fpr = node("Squeeze", [node("MatMul", [f, node("Unsqueeze", [pr, init([2], "ax2", np.int64)], ["pr3"])],
                                 ["fpr3"]), "ax2"], ["fpr"])
+    # (+ the log feature's -0.8 wN, a constant, folded in here)
+    c0 = st["base.bias"] - 0.8 * st["wn"][:k]
     c = node("Sub", [node("Add", [node("Add", [node("MatMul", [pr, init(st["wref.weight"].T, "Wr")], ["wrpr"]),
-                                               init(st["base.bias"], "c0")], ["c1"]), dc], ["c2"]), fpr], ["c3"])
+                                               init(c0, "c0")], ["c1"]), dc], ["c2"]), fpr], ["c3"])
     fu = node("Mul", [f, init([p], "c_p2")], ["Fu"])                               # acting on u
     if j:
         sm = shift_matrices(p, spec.templates)                  # (j, a, b): S_j r = r @ S_j^T
@@ -267,7 +272,10 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper"):
     tot = node("Max", [node("ReduceSum", ["marginals", init([1], "axis1", np.int64)], ["total"], keepdims=1),
                        init([1.0], "one")], ["safe"])
     u = node("Div", ["marginals", tot], ["unit"])
-    z = node("Squeeze", [node("MatMul", [FILTERS, node("Unsqueeze", [u, "ax2"], ["u3"])], ["zu3"]), "ax2"], ["zu"])
+    if contraction == "einsum":
+        z = node("Einsum", [FILTERS, u], ["zu"], equation="nkp,np->nk")
+    else:
+        z = node("Squeeze", [node("MatMul", [FILTERS, node("Unsqueeze", [u, "ax2"], ["u3"])], ["zu3"]), "ax2"], ["zu"])
     z = node("Add", [z, FBIAS], ["zc"])
     logn = node("Log", [tot], ["logn"])
     if j:
@@ -275,12 +283,11 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper"):
         a = np.concatenate([np.zeros(k), st["tgain"]])
         g = node("Exp", [node("Mul", [logn, init(a.reshape(1, kk), "tgain")], ["alogn"])], ["gainN"])
         z = node("Mul", [z, g], ["zg"])
-        tb2 = np.concatenate([np.zeros(k), st["tbias"]])
+        tb2 = np.concatenate([np.zeros(k), st["tbias"] - 0.8 * st["wn"][k:]])
         z = node("Add", [z, init(tb2, "tbias")], ["zgb"])
     # + wN lf = wN (ln N / (3 ln 10) - 0.8)
     wn = st["wn"]
-    z = node("Add", [z, node("Mul", [logn, init((wn / (3 * math.log(10.0))).reshape(1, kk), "wN")], ["wnl"])], ["z0a"])
-    z = node("Add", [z, init(-0.8 * wn, "wNb")], ["z0"])
+    z = node("Add", [z, node("Mul", [logn, init((wn / (3 * math.log(10.0))).reshape(1, kk), "wN")], ["wnl"])], ["z0"])
     h = node("Tanh", [z], ["t0"])
     lins = [m for m in net.trunk if hasattr(m, "weight")]
     idx = [i for i, m in enumerate(net.trunk) if hasattr(m, "weight")]
@@ -329,6 +336,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="/tmp/probe_ann/data")
     ap.add_argument("--chunks", type=int, default=2, help="training chunks of 102,400 spots")
+    ap.add_argument("--samples", type=int, default=None, help="keep the first SAMPLES spots")
     ap.add_argument("--k", type=int, default=32)
     ap.add_argument("--hyper", default="64,64")
     ap.add_argument("--trunk", default="32")
@@ -344,6 +352,9 @@ def main(argv=None):
                      templates=tuple(float(v) for v in a.templates.split(",") if v))
     files = sorted(glob.glob(f"{a.data}/train_*.npz"))[:a.chunks]
     data = load_chunks(files)
+    if a.samples:
+        data = refdata.MarginalPairs(*[getattr(data, f)[:a.samples]
+                                       for f in ("marg", "refs", "y", "r_m", "photons")])
     monitor = load_pairs(f"{a.data}/monitor.npz")
     check = load_pairs(f"{a.data}/check.npz")
     print(f"{len(data.y)} spots; spec {asdict(spec)}", flush=True)

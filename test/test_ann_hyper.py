@@ -1,0 +1,122 @@
+"""ann with a hyper marginals model (``lgs_wfs.hyper``): the reference sets per-subaperture
+filters once per calibration refit (``learning/hypertrain.py``), the frame part reads them."""
+
+import json
+
+import numpy as np
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from lgs_wfs_ros.centroiding import ann as ann_mod
+from lgs_wfs_ros.centroiding import options
+from lgs_wfs_ros.learning import margtrain, refdata
+from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.sensor import Sensor
+from test_ann_marginals import DOMAIN
+from test_ann_reference import P, frames
+
+
+def linear_hyper_model(path, hyper=True, inp="marginals"):
+    """A hyper model that is the pupil-calibrated CoG along block x: one filter, the pixel
+    positions (whatever the reference), bias minus the reference's CoG."""
+    u = ((np.arange(P) - (P - 1) / 2)).astype(np.float32)
+    inits = [numpy_helper.from_array(u.reshape(1, 1, P), "W"),
+             numpy_helper.from_array(-u.reshape(P, 1), "Wb"),
+             numpy_helper.from_array(np.array([1], np.int64), "ax1"),
+             numpy_helper.from_array(np.array([2], np.int64), "ax2"),
+             numpy_helper.from_array(np.array([0.0], np.float32), "zero"),
+             numpy_helper.from_array(np.array([1.0], np.float32), "one")]
+    nodes = [helper.make_node("Mul", ["reference", "zero"], ["r0"]),
+             helper.make_node("Unsqueeze", ["r0", "ax1"], ["r03"]),
+             helper.make_node("Add", ["r03", "W"], ["filters"]),             # (n, 1, p)
+             helper.make_node("MatMul", ["reference", "Wb"], ["fbias"]),     # (n, 1)
+             helper.make_node("ReduceSum", ["marginals", "ax1"], ["total"], keepdims=1),
+             helper.make_node("Max", ["total", "one"], ["safe"]),
+             helper.make_node("Div", ["marginals", "safe"], ["unit"]),
+             helper.make_node("Unsqueeze", ["unit", "ax2"], ["u3"]),
+             helper.make_node("MatMul", ["filters", "u3"], ["z3"]),
+             helper.make_node("Squeeze", ["z3", "ax2"], ["z"]),
+             helper.make_node("Add", ["z", "fbias"], ["shift"])]
+    g = helper.make_graph(nodes, "hyper_lin",
+                          [helper.make_tensor_value_info("marginals", TensorProto.FLOAT, ["batch", P]),
+                           helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", P])],
+                          [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", 1])], inits)
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    m.ir_version = 8
+    meta = {"lgs_wfs.pixels": P, "lgs_wfs.input": inp, "lgs_wfs.input_norm": "none",
+            "lgs_wfs.conditioning": "reference", "lgs_wfs.conditioning_input": "reference",
+            "lgs_wfs.input_name": "marginals", "lgs_wfs.output_frame": "block",
+            "lgs_wfs.detector": "polar", "lgs_wfs.hyper": hyper, "lgs_wfs.domain": DOMAIN}
+    helper.set_model_props(m, {k: json.dumps(v) for k, v in meta.items()})
+    path.write_bytes(m.SerializeToString())
+    return path
+
+
+def test_linear_hyper_model_is_the_pupil_calibrated_cog(tmp_path):
+    """Through refits (period 3), on frames and stacks, ann with the linear hyper model equals
+    cog with bias = pupil: the refit part gets the calibration's references when it refits."""
+    sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
+    ann = options.build("ann", sensor, {"model": str(linear_hyper_model(tmp_path / "h.onnx")), **pup})
+    cog = options.build("cog", sensor, {"bias": "pupil", **pup})
+    plain = options.build("cog", sensor, {})
+    assert ann._refit is not None and set(ann.cond[1]) == {"filters", "fbias"}
+    lay = geometry.layout(sensor)
+    for k, f in enumerate(frames(sensor, 7)):
+        data = f if k % 2 else geometry.frame_to_stack(f, lay)
+        a, c, p = ann.centroid(data), cog.centroid(data), plain.centroid(data)
+        np.testing.assert_allclose(a, c, atol=2e-4)
+        if k >= 3:
+            assert np.abs(a - p).mean() > 0.01
+    assert ann.describe()["pupil_calibration"]["fits"] == 2
+    ann.reset()
+    np.testing.assert_allclose(ann.centroid(frames(sensor, 1, seed=5)[0]),
+                               options.build("cog", sensor, {"bias": "pupil", **pup}).centroid(
+                                   frames(sensor, 1, seed=5)[0]), atol=2e-4)
+
+
+def test_split_hyper_parts_compute_the_whole_graph(tmp_path):
+    path = linear_hyper_model(tmp_path / "h.onnx")
+    import onnx
+    model = onnx.load(str(path))
+    refit, frame = ann_mod.split_hyper(model, "reference", ["filters", "fbias"])
+    assert [i.name for i in refit.graph.input] == ["reference"]
+    assert sorted(i.name for i in frame.graph.input) == ["fbias", "filters", "marginals"]
+    rng = np.random.default_rng(1)
+    marg = rng.poisson(50, (9, P)).astype(np.float32)
+    ref = rng.random((9, P)).astype(np.float32)
+    ref /= ref.sum(axis=1, keepdims=True)
+    whole = ann_mod.open_session(model.SerializeToString()).run(None, {"marginals": marg, "reference": ref})[0]
+    f, b = ann_mod.open_session(refit.SerializeToString()).run(["filters", "fbias"], {"reference": ref})
+    part = ann_mod.open_session(frame.SerializeToString()).run(
+        None, {"marginals": marg, "filters": f, "fbias": b})[0]
+    np.testing.assert_allclose(part, whole, rtol=1e-6)
+
+
+def test_hyper_metadata_is_checked(tmp_path):
+    with pytest.raises(ValueError, match="hyper"):
+        ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper": "true"})
+    with pytest.raises(ValueError, match="true or false"):
+        ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper": '"yes"'})
+    md = ann_mod.read_metadata({"lgs_wfs.pixels": "16"})
+    assert md["hyper"] is False
+
+
+def test_hypertrain_export_computes_the_trained_network():
+    """The exported graph (refit and frame parts, template rows and their N^a gains) equals
+    the torch module on real polar spots."""
+    torch = pytest.importorskip("torch")
+    from lgs_wfs_ros.learning import hypertrain
+    spec = hypertrain.HyperSpec(k=4, hyper=(8,), trunk=(6,), templates=(-0.5, 0.5), head_scale=1.0)
+    net = hypertrain._torch_module(spec)
+    with torch.no_grad():                    # non-trivial gains and scales
+        net.tgain.copy_(torch.tensor([0.3, -0.2]))
+        net.tscale.copy_(torch.tensor([1.5, 0.7]))
+        net.tbias.copy_(torch.tensor([0.1, -0.1]))
+        net.wn.copy_(torch.linspace(-1, 1, 6))
+    pairs = refdata.marginal_pairs(np.random.default_rng(4), 32)
+    u, r, lf, _ = hypertrain._tensors(pairs)
+    with torch.no_grad():
+        want = net(u, r, lf).numpy()
+    model = hypertrain.build_model(net, spec, {})
+    np.testing.assert_allclose(margtrain.predict(model, pairs), want, rtol=1e-4, atol=1e-4)
