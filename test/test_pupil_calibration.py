@@ -238,6 +238,31 @@ def test_replay_uses_the_options_recorded_in_the_bag(tmp_path, monkeypatch):
                      "--options", "{not json"]) == 2
 
 
+def test_a_cmf_recorded_before_the_grid_default_replays_as_its_single_filter(tmp_path,
+                                                                              monkeypatch):
+    """A bag whose cmf description has no ``filters`` (recorded when the single filter was
+    cmf's default) replays through the single filter, giving the live slopes, not through
+    today's default grid."""
+    import lgs_wfs_ros.centroiding as centroiding
+    from lgs_wfs_ros.analysis import bagdata
+    from lgs_wfs_ros.analysis.replay import replay_bag
+    from lgs_wfs_ros.centroiding.cmf import CMF
+
+    path = tmp_path / "old.mcap"
+    with monkeypatch.context() as m:          # the old registry and the old description
+        m.setattr(centroiding, "uses_grid", lambda options: False)
+        describe = CMF.describe
+        m.setattr(CMF, "describe", lambda self: {**describe(self), "options": {
+            k: v for k, v in describe(self)["options"].items() if k != "filters"}})
+        bagdata.make_sample_bag(path, frames=12, algorithms=("cmf",))
+    res = replay_bag(path, ["cmf"], out=tmp_path / "r.mcap", quiet=True)
+    assert res["options"]["cmf"]["options"]["filters"] == "single"
+    segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / "r.mcap").segments}
+    np.testing.assert_allclose(segs["cmf_replay"].slopes.data, segs["cmf"].slopes.data,
+                               atol=1e-6)
+    assert segs["cmf_replay"].description["options"]["filters"] == "single"
+
+
 def test_shift_to_detector_rotates_only_on_polar():
     e = np.array([[0.6, 0.8]])
     v = np.array([[1.0, 0.0]])
