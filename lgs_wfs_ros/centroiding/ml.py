@@ -120,8 +120,8 @@ class ML(TabledCoG):
         check_options(self.name, options, self._public)
         if sensor.detector != "polar":
             raise ValueError("ml needs the polar detector (the spot must be separable in the "
-                             "block axes); on a cartesian detector use gmf (matched filters "
-                             "at a grid of positions), cmf, or cog with bias=pupil")
+                             "block axes); on a cartesian detector use cmf (by default "
+                             "matched filters at a grid of positions) or cog with bias=pupil")
         step = number("step_px", options.pop("step_px", 0.25), minimum=0, strict=True)
         if abs(1.0 / step - round(1.0 / step)) > 1e-9:
             raise ValueError(f"ml: step_px must be 1 / an integer (0.25, 0.125, ...), got {step}")
