@@ -439,7 +439,8 @@ def rows(res: dict) -> list[dict]:
                              "note": f"{len(best)} cases ({res['mode']})"})
     for lb, v in res["cpu_ms"].items():
         rows.append({"name": f"accuracy {lb} CPU per full frame", "value": v["per_frame"],
-                     "unit": "ms", "target": "<= 1", "note": "per-frame part; refit "
+                     "unit": "ms", "target": "<= 1", "note": "per-frame part, every frame new, cases run side by side "
+                     "(--jobs; one quiet core: bench_centroiders); refit "
                      + ("-" if v["refit"] is None else f"{v['refit']:.0f} ms every period")})
     return rows
 
