@@ -329,6 +329,54 @@ def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
         np.testing.assert_allclose(geometry.grid_to_slopes(out[stamp], lay), lib.centroid(f), atol=1e-5)
 
 
+def test_default_cmf_live_through_refits_equals_its_replay(ros, tmp_path):
+    """The centroider node running cmf's default (the grid of filters, pupil calibration
+    refitted every 5 frames) on a played bag gives, frame for frame, what `lgs-wfs replay`
+    gives for that bag with the same options."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.analysis import bagdata
+    from lgs_wfs_ros.analysis.replay import replay_bag
+    from lgs_wfs_ros.ros import qos
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    from lgs_wfs_ros.ros.player_node import PlayerNode
+
+    path = tmp_path / "in.mcap"
+    stamps = [1000 + 10 * k for k in range(20)]
+    with bagdata.ContractBagWriter(path, SMALL) as bag:
+        for k, stamp in enumerate(stamps):
+            bag.frame(stamp, small_frame(SMALL, 40 + k))
+            bag.truth(stamp, np.zeros((geometry.layout(SMALL).n_valid, 2)))
+    node = ros.add(CentroiderNode(context=ros.context, namespace="cmf", cli_args=[
+        "--ros-args", "-r", "frame:=/wfs/frame", "-r", "sensor:=/wfs/sensor"],
+        parameter_overrides=[Parameter("algorithm", value="cmf"),
+                             Parameter("cmf.pupil_period", value=5)]))
+    out = {}
+    listener = ros.add(Node("listen_cmf", context=ros.context))
+    listener.create_subscription(Image, "/cmf/slopes",
+                                 lambda cdr: out.__setitem__(*bags.decode_image(cdr)[::3]),
+                                 qos.SLOPES, raw=True)
+    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(path)), Parameter("rate", value="max"),
+        Parameter("wait_for", value=["/cmf/slopes"]), Parameter("start_delay_s", value=1.0)]))
+    assert wait_for(lambda: player.finished.is_set(), timeout=90)
+    assert wait_for(lambda: len(out) == 20, timeout=10)
+    desc = node.centroider.describe()
+    assert desc["options"]["filters"] == "grid" and desc["pupil_calibration"]["fits"] == 4
+    res = replay_bag(path, ["cmf"], out=tmp_path / "r.mcap", quiet=True,
+                     options={"cmf": {"pupil_period": 5}})
+    assert res["options"]["cmf"]["source"] == "given"
+    replayed = {sg.label: sg for sg in bagdata.load_bag(tmp_path / "r.mcap").segments}["cmf"]
+    lay = geometry.layout(SMALL)
+    live = np.stack([geometry.grid_to_slopes(out[s], lay) for s in stamps])
+    np.testing.assert_allclose(live, replayed.slopes.data[:, lay.valid.ravel()], atol=1e-5)
+    # the refits mattered: the table's default period (no refit in 20 frames) differs
+    plain = make_centroider("cmf", SMALL)
+    first = np.stack([plain.centroid(small_frame(SMALL, 40 + k)) for k in range(20)])
+    assert np.abs(first - live).max() > 1e-3
+
+
 def test_player_keeps_at_most_in_flight_frames_unanswered(ros, tmp_path):
     """rate 'max' with in_flight 3: three frames go out, then the player waits for the
     first one's answer; each answer lets exactly one more frame out."""
