@@ -138,7 +138,9 @@ def run(quick: bool = False) -> list[dict]:
                               ("ml (polar detector, per-frame part)", "ml",
                                {"pupil_period": 1000000}),
                               ("ann ann_marg (polar detector, per-frame part)", "ann",
-                               {"model": "ann_marg", "pupil_period": 1000000})):
+                               {"model": "ann_marg", "pupil_period": 1000000}),
+                              ("ann ann_hyper (default polar model, per-frame part)", "ann",
+                               {"model": "ann_hyper", "pupil_period": 1000000})):
         c = make_centroider(name, polar, **opts)
         timings[label] = add(label, _time(lambda: c.centroid(pframe), reps),
                              "" if name == "cog" else "< 1 ms",

@@ -74,7 +74,7 @@ from .base import Centroider, check_options
 
 #: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
 #: reference; on a polar detector ann_marg (the column sums along e) is the more accurate
-DEFAULT_MODELS = {"polar": "ann_marg", "cartesian": "ann_ref"}
+DEFAULT_MODELS = {"polar": "ann_hyper", "cartesian": "ann_ref"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
@@ -366,7 +366,7 @@ class ANN(Centroider):
 
     Options:
         model: path or name (default: :data:`DEFAULT_MODELS` of the sensor's detector,
-            ``ann_marg`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
+            ``ann_hyper`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.

@@ -28,6 +28,10 @@ def train_model(name, out_dir=None, samples=None, seed=None, quick=False, force=
     """
     from ..extras import require
     require("torch", "train", "lgs-wfs train")
+    if name in RECIPES and RECIPES[name].conditioning == "marginals" and RECIPES[name].filters:
+        from .hypertrain import train_recipe
+        return train_recipe(name, out_dir=out_dir, samples=samples, seed=seed, quick=quick,
+                            force=force, **kwargs)
     if name in RECIPES and RECIPES[name].conditioning == "marginals":
         from .margtrain import train_recipe
         return train_recipe(name, out_dir=out_dir, samples=samples, seed=seed, quick=quick,

@@ -1,4 +1,4 @@
-"""Reference-conditioned filters for the marginal network (``ann_hyper``, polar detector; probe).
+"""Reference-conditioned filters for the marginal network (``ann_hyper``, polar detector).
 
 ``ann_marg``'s first layer is linear in (column sums, reference): it cannot build a matched
 filter from the reference. Here the reference sets the first layer's weights. At each
@@ -17,8 +17,11 @@ small tanh MLP gives the shift along e (block x)::
 
 With ``dF = 0`` this is ``ann_marg``'s form (its first layer ``Wd p (u - r) + Wref p r``).
 
-Training: :func:`.margtrain.generate` spots (the same prior, seeds, check and monitor sets
-as ``ann_marg``), Adam, MSE, cosine learning rate, best monitor weights kept.
+Training (``lgs-wfs train ann_hyper``: :func:`train`, recipe ``ann_hyper``, K = 8, trunk
+8-32-1): :func:`.margtrain.generate` spots (the same prior, seeds, check and monitor sets as
+``ann_marg``), Adam, MSE, cosine learning rate, best monitor weights kept. ``main`` (``python
+-m lgs_wfs_ros.learning.hypertrain``) trains variants from cached chunks (:func:`cache_data`)
+for experiments.
 
 Export: one ONNX graph with inputs ``marginals (batch, p)`` and ``reference (batch, p)``
 and the intermediate tensors ``filters (batch, K', p)`` and ``fbias (batch, K')`` computed
@@ -316,6 +319,57 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
     return model
 
 
+# -- lgs-wfs train ----------------------------------------------------------------------------
+def spec_of(rec, epochs: int | None = None, seed: int | None = None) -> HyperSpec:
+    """The :class:`HyperSpec` of a recipe with ``filters`` > 0 (``sizes``: trunk, filters
+    first, output last)."""
+    return HyperSpec(pixels=16, k=int(rec.filters), trunk=tuple(rec.sizes[1:-1]),
+                     epochs=rec.epochs if epochs is None else int(epochs), batch=rec.batch,
+                     lr=rec.lr, seed=rec.seed if seed is None else int(seed))
+
+
+def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: bool = True,
+          time_budget_s: float | None = None) -> dict:
+    """Train recipe ``rec`` into ``target`` (an ONNX path) on :func:`.margtrain.generate`'s
+    spots (``samples`` from ``seed``: ``ann_marg``'s data for the same numbers); returns
+    ``{"path", "training", "history"}``."""
+    from . import export
+    t0 = time.perf_counter()
+    spec = spec_of(rec, epochs, seed)
+    data = margtrain.generate(samples, seed, progress=progress)
+    mon = margtrain.generate(min(20_000, max(2000, samples // 10)), margtrain.MONITOR_SEED + seed,
+                             progress=False)
+    gen_s = time.perf_counter() - t0
+    log = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
+    net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
+    del data
+    check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
+    prior = refdata.MARGINAL_SPEC
+    training = {"recipe": rec.to_dict(), "recipe_line": rec.line(samples), "optimizer": "adam",
+                "seed": seed, "samples": samples, "quick": False, "spec": asdict(spec),
+                "parameters": int(sum(v for k, v in n_weights(net).items() if k != "filters_per_subap")),
+                "weights": n_weights(net), "photons": None,
+                "photons_range": list(prior.photons), "profiles": prior.describe(),
+                "generate_seconds": round(gen_s, 1),
+                "fit_seconds": round(hist[-1]["seconds"], 1) if hist else 0.0,
+                "epochs_run": len(hist),
+                "final_monitor_mae_px": min(h["monitor_mae_px"] for h in hist),
+                "check": {"mean_err_px": _mae(net, _tensors(check)), "n": margtrain.CHECK_N,
+                          "seed": margtrain.CHECK_SEED,
+                          "what": "fresh spots of the training prior (margtrain's check set)"}}
+    model = build_model(net, spec, {"lgs_wfs.training": training,
+                                    "lgs_wfs.domain": margtrain.domain(prior)}, rec.name)
+    path = export.save(model, Path(target))
+    return {"path": str(path), "training": training, "history": hist}
+
+
+def train_recipe(name: str, **kwargs) -> dict:
+    """``lgs-wfs train`` for a filters recipe: :func:`.reftrain.train_recipe` with this
+    module's :func:`train`."""
+    from .reftrain import train_recipe as _train_recipe
+    return _train_recipe(name, trainer=train, **kwargs)
+
+
 # -- cached data (probe) ------------------------------------------------------------------------
 def load_pairs(path) -> refdata.MarginalPairs:
     d = np.load(path)
@@ -326,6 +380,36 @@ def load_chunks(paths) -> refdata.MarginalPairs:
     parts = [load_pairs(p) for p in paths]
     return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts])
                                    for f in ("marg", "refs", "y", "r_m", "photons")])
+
+
+CHUNK_BATCHES, BATCH = 25, 4096          # a cached chunk: batches [25 c, 25 (c + 1)) of 4096 spots
+
+
+def cache_data(data_dir, chunks: int, seed: int = 16, log=print) -> None:
+    """Write the training chunks (``train_NNN.npz``: batch ``k`` of 4096 spots drawn from
+    ``default_rng([seed, k])``, :func:`.margtrain.generate`'s batches, so the first 195
+    batches are ``ann_marg``'s own), the monitor set (``margtrain``'s) and the check set
+    (``CHECK_SEED``) into ``data_dir``; existing files are kept."""
+    out = Path(data_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def save(name, pairs):
+        np.savez(out / name, marg=pairs.marg, refs=pairs.refs, y=pairs.y, r_m=pairs.r_m,
+                 photons=pairs.photons)
+    if not (out / "check.npz").exists():
+        save("check.npz", margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False))
+    if not (out / "monitor.npz").exists():
+        save("monitor.npz", margtrain.generate(20_000, margtrain.MONITOR_SEED + seed, progress=False))
+    for c in range(chunks):
+        f = out / f"train_{c:03d}.npz"
+        if f.exists():
+            continue
+        t0 = time.perf_counter()
+        parts = [refdata.marginal_pairs(np.random.default_rng([seed, k]), BATCH)
+                 for k in range(c * CHUNK_BATCHES, (c + 1) * CHUNK_BATCHES)]
+        save(f.name, refdata.MarginalPairs(*[np.concatenate([getattr(q, f_) for q in parts])
+                                             for f_ in ("marg", "refs", "y", "r_m", "photons")]))
+        log(f"chunk {c}: {time.perf_counter() - t0:.0f} s")
 
 
 def main(argv=None):
@@ -344,11 +428,16 @@ def main(argv=None):
     ap.add_argument("--epochs", type=int, default=40)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--head-scale", type=float, default=0.1)
+    ap.add_argument("--seed", type=int, default=16, help="initialisation and shuffling (the data: seed 16)")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--generate", action="store_true",
+                    help="first draw the missing chunks, monitor and check sets into --data")
     a = ap.parse_args(argv)
+    if a.generate:
+        cache_data(a.data, a.chunks, log=lambda s: print(s, flush=True))
     ints = lambda s: tuple(int(v) for v in s.split(",") if v)             # noqa: E731
     spec = HyperSpec(k=a.k, hyper=ints(a.hyper), trunk=ints(a.trunk), epochs=a.epochs, lr=a.lr,
-                     head_scale=a.head_scale,
+                     head_scale=a.head_scale, seed=a.seed,
                      templates=tuple(float(v) for v in a.templates.split(",") if v))
     files = sorted(glob.glob(f"{a.data}/train_*.npz"))[:a.chunks]
     data = load_chunks(files)

@@ -54,6 +54,9 @@ class Recipe:
         loss: Adam only: "mse" (the paper's) or "euclid" (per sample, the root of the
             squared Euclidean error plus the noise penalty: the validation metric).
         seed: data seed (training stream) and initialisation seed.
+        filters: marginal recipes: reference-conditioned filters per subaperture (the
+            reference sets the first layer, :mod:`.hypertrain`; ``sizes`` is then the
+            per-frame trunk, filters first); 0: a plain MLP on (sums, reference's).
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -81,6 +84,7 @@ class Recipe:
     noise_penalty_photons: float | None = None
     loss: str = "mse"
     seed: int = 1
+    filters: int = 0
     shipped: bool = True
     note: str = ""
 
@@ -88,9 +92,14 @@ class Recipe:
         """The one-line recipe printed by ``lgs-wfs train``."""
         if self.conditioning == "marginals":
             from .refdata import MARGINAL_SPEC as pr
-            return (f"{self.name}: MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's "
-                    f"column sums (along e): (sums / total - reference's, reference's, "
-                    f"log10 total); {samples or self.samples} spots of the "
+            form = (f"MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's column sums "
+                    f"(along e): (sums / total - reference's, reference's, log10 total)"
+                    ) if not self.filters else (
+                    f"{self.filters} filters per subaperture set by its reference's column sums "
+                    f"(a tanh 64-64 network run at each calibration refit), applied to the "
+                    f"spot's column sums / total, then tanh {'-'.join(map(str, self.sizes))} with "
+                    f"log10 total")
+            return (f"{self.name}: {form}; {samples or self.samples} spots of the "
                     f"{pr.describe()}; references stale (layers moved {pr.stale_shift_m:g} m rms, "
                     f"stretched {pr.stale_stretch:.0%}) and seen through the pupil "
                     f"calibration's node basis ({pr.node_noise:.0%} node noise); "
@@ -177,6 +186,16 @@ RECIPES["ann_marg"] = Recipe(
     detectors=("polar",),
     note="polar: the column sums (along e) and the reference's from the pupil calibration; "
          "every radius to 35 m, 100-3000 photons")
+
+# The marginal network whose first layer the reference sets (learning/hypertrain.py): at
+# each calibration refit a small network turns a subaperture's reference into 8 filters for
+# its column sums, so the per-frame part can match the spot against its own reference.
+RECIPES["ann_hyper"] = Recipe(
+    "ann_hyper", "polar", pupil=True, sizes=(8, 32, 1), conditioning="marginals", filters=8,
+    samples=800_000, quick_samples=20_000, epochs=40, batch=512, lr=2e-3, loss="mse", seed=16,
+    detectors=("polar",),
+    note="polar: 8 filters per subaperture set by its reference from the pupil calibration, "
+         "applied to the column sums (along e); every radius to 35 m, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they
