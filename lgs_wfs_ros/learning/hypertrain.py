@@ -418,7 +418,7 @@ def main(argv=None):
 
     import torch
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default="/tmp/probe_ann/data")
+    ap.add_argument("--data", required=True, help="directory of cached chunks (--generate writes them)")
     ap.add_argument("--chunks", type=int, default=2, help="training chunks of 102,400 spots")
     ap.add_argument("--samples", type=int, default=None, help="keep the first SAMPLES spots")
     ap.add_argument("--k", type=int, default=32)
