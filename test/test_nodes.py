@@ -294,7 +294,10 @@ def test_simulator_publishes_frames_truths_and_sensor(ros):
     assert sim.sim.sensor == sensor
 
 
-def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
+def _play_through_centroider(ros, path, frames, ns, params=(), timeout=60):
+    """Write ``frames`` ``{stamp: frame}`` (SMALL sensor, zero truth) to ``path``, play it at
+    full rate through a centroider node in namespace ``ns`` (extra ``params``: Parameters),
+    and return ``(node, player, {stamp: slopes grid})``."""
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import Image
@@ -303,24 +306,29 @@ def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
     from lgs_wfs_ros.ros.centroider_node import CentroiderNode
     from lgs_wfs_ros.ros.player_node import PlayerNode
 
-    path = tmp_path / "in.mcap"
-    frames = {1000 + 10 * k: small_frame(SMALL, 10 + k) for k in range(20)}
     with ContractBagWriter(path, SMALL) as bag:
         for stamp, f in frames.items():
             bag.frame(stamp, f)
             bag.truth(stamp, np.zeros((geometry.layout(SMALL).n_valid, 2)))
     remap = ["--ros-args", "-r", "frame:=/wfs/frame", "-r", "sensor:=/wfs/sensor"]
-    cog = ros.add(CentroiderNode(context=ros.context, namespace="cog", cli_args=remap))
+    node = ros.add(CentroiderNode(context=ros.context, namespace=ns, cli_args=remap,
+                                  parameter_overrides=list(params)))
     out = {}
-    listener = ros.add(Node("listen_cog", context=ros.context))
-    listener.create_subscription(Image, "/cog/slopes",
+    listener = ros.add(Node(f"listen_{ns}", context=ros.context))
+    listener.create_subscription(Image, f"/{ns}/slopes",
                                  lambda cdr: out.__setitem__(*bags.decode_image(cdr)[::3]),
                                  qos.SLOPES, raw=True)
     player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
         Parameter("bag", value=str(path)), Parameter("rate", value="max"),
-        Parameter("wait_for", value=["/cog/slopes"]), Parameter("start_delay_s", value=1.0)]))
-    assert wait_for(lambda: player.finished.is_set(), timeout=60)
-    assert wait_for(lambda: len(out) == 20, timeout=10)
+        Parameter("wait_for", value=[f"/{ns}/slopes"]), Parameter("start_delay_s", value=1.0)]))
+    assert wait_for(lambda: player.finished.is_set(), timeout=timeout)
+    assert wait_for(lambda: len(out) == len(frames), timeout=10)
+    return node, player, out
+
+
+def test_player_replays_a_bag_through_a_centroider(ros, tmp_path):
+    frames = {1000 + 10 * k: small_frame(SMALL, 10 + k) for k in range(20)}
+    cog, player, out = _play_through_centroider(ros, tmp_path / "in.mcap", frames, "cog")
     assert player.published["frame"] == 20 and player.published["sensor"] == 1
     assert cog.counters.processed == 20 and cog.counters.rejected == 0
     lib = make_centroider("cog", SMALL)
@@ -333,35 +341,16 @@ def test_default_cmf_live_through_refits_equals_its_replay(ros, tmp_path):
     """The centroider node running cmf's default (the grid of filters, pupil calibration
     refitted every 5 frames) on a played bag gives, frame for frame, what `lgs-wfs replay`
     gives for that bag with the same options."""
-    from rclpy.node import Node
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import Image
     from lgs_wfs_ros.analysis import bagdata
     from lgs_wfs_ros.analysis.replay import replay_bag
-    from lgs_wfs_ros.ros import qos
-    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
-    from lgs_wfs_ros.ros.player_node import PlayerNode
 
     path = tmp_path / "in.mcap"
     stamps = [1000 + 10 * k for k in range(20)]
-    with bagdata.ContractBagWriter(path, SMALL) as bag:
-        for k, stamp in enumerate(stamps):
-            bag.frame(stamp, small_frame(SMALL, 40 + k))
-            bag.truth(stamp, np.zeros((geometry.layout(SMALL).n_valid, 2)))
-    node = ros.add(CentroiderNode(context=ros.context, namespace="cmf", cli_args=[
-        "--ros-args", "-r", "frame:=/wfs/frame", "-r", "sensor:=/wfs/sensor"],
-        parameter_overrides=[Parameter("algorithm", value="cmf"),
-                             Parameter("cmf.pupil_period", value=5)]))
-    out = {}
-    listener = ros.add(Node("listen_cmf", context=ros.context))
-    listener.create_subscription(Image, "/cmf/slopes",
-                                 lambda cdr: out.__setitem__(*bags.decode_image(cdr)[::3]),
-                                 qos.SLOPES, raw=True)
-    player = ros.add(PlayerNode(context=ros.context, parameter_overrides=[
-        Parameter("bag", value=str(path)), Parameter("rate", value="max"),
-        Parameter("wait_for", value=["/cmf/slopes"]), Parameter("start_delay_s", value=1.0)]))
-    assert wait_for(lambda: player.finished.is_set(), timeout=90)
-    assert wait_for(lambda: len(out) == 20, timeout=10)
+    frames = {stamp: small_frame(SMALL, 40 + k) for k, stamp in enumerate(stamps)}
+    node, _, out = _play_through_centroider(
+        ros, path, frames, "cmf", [Parameter("algorithm", value="cmf"),
+                                   Parameter("cmf.pupil_period", value=5)], timeout=90)
     desc = node.centroider.describe()
     assert desc["options"]["filters"] == "grid" and desc["pupil_calibration"]["fits"] == 4
     res = replay_bag(path, ["cmf"], out=tmp_path / "r.mcap", quiet=True,
@@ -373,7 +362,7 @@ def test_default_cmf_live_through_refits_equals_its_replay(ros, tmp_path):
     np.testing.assert_allclose(live, replayed.slopes.data[:, lay.valid.ravel()], atol=1e-5)
     # the refits mattered: the table's default period (no refit in 20 frames) differs
     plain = make_centroider("cmf", SMALL)
-    first = np.stack([plain.centroid(small_frame(SMALL, 40 + k)) for k in range(20)])
+    first = np.stack([plain.centroid(frames[s]) for s in stamps])
     assert np.abs(first - live).max() > 1e-3
 
 

@@ -39,7 +39,7 @@ from . import kernels
 from ..optics import fast_frames, geometry
 from ..optics.model_spot import shift_to_detector
 from .base import check_options, number
-from .cmf import CMF, FILTERS, solve_filter
+from .cmf import CMF, FILTERS, GRID_DEFAULTS, solve_filter
 from .cog import CoG, TabledCoG
 
 #: shift of the central differences that give each reference's derivatives, px
@@ -70,14 +70,15 @@ class GMF(TabledCoG):
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._public)
-        spacing = number("spacing_px", options.pop("spacing_px", 0.5), minimum=0, strict=True)
-        grid = number("grid", options.pop("grid", 5), minimum=1, integer=True)
+        spacing = number("spacing_px", options.pop("spacing_px", GRID_DEFAULTS["spacing_px"]),
+                         minimum=0, strict=True)
+        grid = number("grid", options.pop("grid", GRID_DEFAULTS["grid"]), minimum=1, integer=True)
         if grid % 2 == 0:
             raise ValueError(f"{self.name}: grid must be odd (a position at the centre), got {grid}")
         if spacing * (grid // 2) > 0.5 * sensor.pixels:
             raise ValueError(f"{self.name}: the grid reaches {spacing * (grid // 2)} px, beyond half "
                              f"the field ({0.5 * sensor.pixels} px)")
-        picks = number("picks", options.pop("picks", 2), minimum=1, integer=True)
+        picks = number("picks", options.pop("picks", GRID_DEFAULTS["picks"]), minimum=1, integer=True)
         if picks > 3:
             raise ValueError(f"{self.name}: picks must be 1, 2 or 3, got {picks}")
         rn = number("read_noise_e", options.pop("read_noise_e", float(sensor.read_noise_e)),

@@ -93,6 +93,17 @@ _HISTORY = (
      {"low": 0.0, "high": 100e3}),
 )
 
+#: the grid of matched filters (gmf, and cmf with filters=grid)
+_GRID = (
+    ("grid", 5, "Grid of filters: reference positions per axis, odd (5: +-1 px at 0.5 px).",
+     {"low": 1, "high": 15}),
+    ("spacing_px", 0.5, "Grid of filters: distance between the filters' reference positions, "
+     "pixels.", {"low": 0.05, "high": 4.0}),
+    ("picks", 2, "Grid of filters: filter choices per block: 1 takes the position nearest the "
+     "calibrated CoG; 2 picks again by that filter's measurement (3: once more).",
+     {"low": 1, "high": 3}),
+)
+
 OPTIONS: dict[str, tuple[Option, ...]] = {
     "cog": _rows("cog", ("background", -1.0, "Background subtracted per pixel, counts "
                          "(-1: the sensor's background_e).", {**_SENSOR, "high": 1e6}),
@@ -128,13 +139,7 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
          "positions spacing_px apart, the one nearest each spot applied (grid), one at the "
          "reference, its response linearised (single, the paper's kind), or auto (grid with "
          "the pupil reference, single with any other).", {"choices": ("auto", "grid", "single")}),
-        ("grid", 5, "filters=grid: reference positions per axis, odd (5: +-1 px at 0.5 px).",
-         {"low": 1, "high": 15}),
-        ("spacing_px", 0.5, "filters=grid: distance between the filters' reference positions, "
-         "pixels.", {"low": 0.05, "high": 4.0}),
-        ("picks", 2, "filters=grid: filter choices per block: 1 takes the position nearest "
-         "the calibrated CoG; 2 picks again by that filter's measurement (3: once more).",
-         {"low": 1, "high": 3}),
+        *_GRID,
         *_HISTORY,
         ("dither", 0.02, "Shift used to build the filter's derivative images, pixels.",
          {"low": 1e-4, "high": 1.0}),
@@ -183,13 +188,7 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                 ("extent_px", 2.0, "Largest shift tabulated, pixels (beyond it the "
                  "pupil-calibrated CoG is returned).", {"low": 0.25, "high": 8.0}),
                 *_PUPIL),
-    "gmf": _rows("gmf", ("spacing_px", 0.5, "Distance between the filters' reference "
-                         "positions, pixels.", {"low": 0.05, "high": 4.0}),
-                 ("grid", 5, "Reference positions per axis, odd (5: +-1 px at 0.5 px).",
-                  {"low": 1, "high": 15}),
-                 ("picks", 2, "Filter choices per block: 1 takes the position nearest the "
-                  "calibrated CoG; 2 picks again by that filter's measurement (3: once more).",
-                  {"low": 1, "high": 3}),
+    "gmf": _rows("gmf", *_GRID,
                  ("background", -1.0, "Background subtracted per pixel and in the weighting, "
                   "counts (-1: the sensor's).", {**_SENSOR, "high": 1e6}),
                  ("read_noise_e", -1.0, "Read noise in the weighting, e- (-1: the sensor's).",
