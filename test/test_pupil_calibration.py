@@ -200,6 +200,28 @@ def test_pupil_reference_installs_exact_derivatives_and_follows_refits():
                                0.0, atol=2e-3)
 
 
+def test_reference_image_is_the_reference_rendered_once_per_profile(monkeypatch):
+    s = SMALL.replace(detector="polar")
+    cal = PupilCalibration(s, period=2)
+    renders = []
+    spots = cal.spots()
+    real = type(spots).image_at
+    monkeypatch.setattr(type(spots), "image_at", lambda self, shift: renders.append(1) or real(self, shift))
+    img = cal.reference_image()
+    assert len(renders) == 1                                    # the image alone, no derivatives
+    assert cal.reference_image() is img and len(renders) == 1   # cached for this profile
+    full = cal.reference()
+    assert full[0] is img and len(renders) == 5                 # derivatives added, image reused
+    _, _, sm = true_spots(s, "narrow")
+    frame = sm.images(np.zeros((cal.n, 2)))[0] * 1000.0
+    for _ in range(2):
+        cal.observe(frame.reshape(cal.n, -1))                    # a refit: a new profile
+    new = cal.reference_image()
+    assert not np.array_equal(new, img)
+    np.testing.assert_array_equal(new, cal.spots().image_at(np.zeros((cal.n, 2))))
+    np.testing.assert_array_equal(cal.reference()[0], new)
+
+
 def test_options_table_offers_the_pupil_and_every_row_has_a_help():
     for alg in ("cmf", "corr"):
         assert table.option(alg, "reference").default == "pupil"

@@ -452,7 +452,7 @@ class ANN(Centroider):
     def _reference_code(self) -> np.ndarray:
         """``(n, h)`` float32: the calibration's current references (unit sum, block axes)
         through the model's reference matrix."""
-        ref = self.pupil.reference()[0]
+        ref = self.pupil.reference_image()
         if self.marginals:                  # column sums; the row sums' CoG for block y
             rows = ref.sum(axis=2)
             tot = rows.sum(axis=1)

@@ -134,7 +134,7 @@ class GMF(TabledCoG):
         lay = geometry.layout(sensor)
         renderer = fast_frames.FastRenderer(lay)
         model = calibration.spots().model
-        img0 = calibration.reference()[0]
+        img0 = calibration.reference_image()
         flux = np.full(self.n, float(self.sensor.photons)) if calibration.flux is None \
             else calibration.flux
         tot = img0.reshape(self.n, -1).sum(axis=1)

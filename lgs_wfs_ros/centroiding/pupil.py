@@ -458,20 +458,30 @@ class PupilCalibration:
         if self._refs is None or self._refs[0] != self.version:
             ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
                               self.light, self.max_shift_px)
-            self._refs = (self.version, ps, None)
+            self._refs = (self.version, ps, None, None)   # (version, spots, reference, image)
         return self._refs[1]
 
     def reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy)``, each ``(n, p, p)``, unit light at zero shift, block axes."""
         spots = self.spots()
         if self._refs[2] is None:
-            self._refs = (self._refs[0], spots, spots.reference())
+            self._refs = (self._refs[0], spots, spots.reference(image=self._refs[3]), None)
         return self._refs[2]
+
+    def reference_image(self) -> np.ndarray:
+        """``(n, p, p)``: the image of :meth:`reference` alone (one render instead of five;
+        what the CoG bias, the networks and the grid's filters start from)."""
+        spots = self.spots()
+        if self._refs[2] is not None:
+            return self._refs[2][0]
+        if self._refs[3] is None:
+            self._refs = (*self._refs[:3], spots.image_at(np.zeros((self.n, 2))))
+        return self._refs[3]
 
     def cog_bias(self) -> np.ndarray:
         """``(n, 2)`` CoG of each reference, px, block axes: a plain CoG's reading of a spot
         at the true centre, to subtract."""
-        img = self.reference()[0]
+        img = self.reference_image()
         p = self.sensor.pixels
         c = (p - 1) / 2
         flat = img.reshape(self.n, -1)
@@ -494,7 +504,7 @@ class PupilCalibration:
     def image_at(self, shift_block: np.ndarray) -> np.ndarray:
         """``(n, p, p)`` noise-free counts of the current reference displaced by
         ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
-        img0 = self.reference()[0]
+        img0 = self.reference_image()
         flux = np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
         tot = img0.reshape(self.n, -1).sum(axis=1)
         return self.spots().image_at(shift_block) * (flux / np.where(tot > 0, tot, 1.0))[:, None, None]

@@ -124,11 +124,13 @@ class ProfileSpots:
         img, _ = self.model.images(shift_to_detector(self.sensor, self.e, shift_block))
         return img
 
-    def reference(self, h: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def reference(self, h: float = 0.01, image: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy)`` at zero shift, unit light, block axes (central differences
-        of exact renders: the Fourier dither is wrong for the under-sampled core)."""
+        of exact renders: the Fourier dither is wrong for the under-sampled core); ``image``:
+        that image if already rendered (``image_at`` of zero shifts)."""
         zero = np.zeros((self.n, 2))
-        img = self.image_at(zero)
+        img = self.image_at(zero) if image is None else image
         ex, ey = np.array([h, 0.0]), np.array([0.0, h])
         dx = (self.image_at(zero + ex) - self.image_at(zero - ex)) / (2 * h)
         dy = (self.image_at(zero + ey) - self.image_at(zero - ey)) / (2 * h)
