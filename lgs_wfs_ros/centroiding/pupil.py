@@ -114,6 +114,7 @@ class PupilCalibration:
         polar = sensor.detector == "polar"
         e_pix = np.tile([1.0, 0.0], (self.n, 1)) if polar else np.asarray(self.layout.e, float)
         self.projection = Projection(sensor, e_pix, 1.0)
+        self._e_pix = e_pix
         self._basis = None
         self.blur_px = 0.0
         y, x = np.indices((sensor.pixels, sensor.pixels), dtype=float)
@@ -161,16 +162,23 @@ class PupilCalibration:
 
     @property
     def basis(self) -> np.ndarray:
-        """``(n, nb, K)`` projected thin-layer spots (built on first use, ~1-2 s)."""
+        """``(n, nb, K)`` projected thin-layer spots (built on first use, ~2-5 s), and with
+        them ``_dbasis``, their derivative with respect to a shift along e (px^-1, a forward
+        difference over 0.02 px: one more render)."""
         if self._basis is None:
             # the mean image of a spot under random tilts of rms s per axis is the spot with
             # its Gaussian core widened by s: fit the means against spots so blurred
-            core = math.hypot(self.sensor.core_fwhm_px, FWHM_PER_SIGMA * self.blur_px)
-            b = projected_hats(self.sensor.replace(core_fwhm_px=core), self.layout.r_m,
-                               self.layout.e, self.nodes_m, self.projection)
+            sensor = self.sensor.replace(
+                core_fwhm_px=math.hypot(self.sensor.core_fwhm_px, FWHM_PER_SIGMA * self.blur_px))
+            hats = lambda shift: projected_hats(sensor, self.layout.r_m, self.layout.e,  # noqa: E731
+                                                self.nodes_m, self.projection, shift)
+            b, h = hats(None), 0.02
+            self._dbasis = (hats(h * self._e_pix) - b) / h
             self._basis = b
             self._colsum = b.sum(axis=1)                                       # (n, K)
-            self._gram = np.einsum("snk,snl->kl", b, b)
+            self._dcolsum = self._dbasis.sum(axis=1)                           # (n, K)
+            flat = b.reshape(-1, b.shape[2])
+            self._gram = flat.T @ flat
             k = b.shape[2]
             d2 = np.diff(np.eye(k), 2, axis=0)
             self._rough = d2.T @ d2
@@ -394,16 +402,16 @@ class PupilCalibration:
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
-        not reach): the pupil median of the across-e variance, inverted through the
-        pixel-integrated core widened by a blur; the basis is rebuilt when it moves by more
-        than 0.05 px."""
+        not reach): the pupil median of the across-e variance about the block centre (the
+        true centre: each subaperture's mean tilt over the window counts, as the fit sees
+        it; docs/accuracy.md), inverted through the pixel-integrated core widened by a
+        blur; the basis is rebuilt when it moves by more than 0.05 px."""
         if good.sum() < 3:
             return
         m = np.maximum(mean[good], 0.0)
         tot = m.sum(axis=1)
         u = self._u_perp[good]
-        mu = (m * u).sum(axis=1) / tot
-        var = (m * u * u).sum(axis=1) / tot - mu ** 2
+        var = (m * u * u).sum(axis=1) / tot
         blur = float(np.interp(np.median(var), *self._spread_table()))
         if abs(blur - self.blur_px) > 0.05:
             self.blur_px = blur
@@ -427,22 +435,41 @@ class PupilCalibration:
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
               iterations: int = 3) -> np.ndarray:
         """Light per node ``(K,)`` from unit-light projected means ``z (n, nb)`` of the
-        subapertures ``ok (n,)``; ``start`` gives the first field fractions."""
-        b = self.basis
-        gram = self._gram
-        bad = ~ok
-        if bad.any():
-            gram = gram - np.einsum("snk,snl->kl", b[bad], b[bad])
-        bo, zo, cs = b[ok], z[ok], self._colsum[ok]
-        lam = self.smoothing * np.trace(gram) / gram.shape[0]
-        chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(len(gram)),
-                             lower=True)
-        low = np.tril(chol)
+        subapertures ``ok (n,)``; ``start`` gives the first field fractions.
+
+        Each frame's light is counted inside the field (docs/conventions.md), so a frame
+        whose tilt pushes a spot out of its field is scaled up: the mean of frames tilted by
+        ``t ~ N(0, s^2)`` along e is, to first order, the blurred spot ``B x`` displaced by
+        ``d = -s^2 kappa`` (``kappa = d ln c / dt``, ``c(t)`` the light the field keeps):
+        ``(B + d B') x``, with ``B'`` the basis' derivative along e. Without that term the
+        spots the field truncates pull the profile (docs/accuracy.md). ``d`` and the field
+        fractions come from the previous iterate (``start`` first); ``d`` is applied where
+        it exceeds 1e-3 px."""
+        b, db = self.basis, self._dbasis
+        k = b.shape[2]
         x = self.prior if start is None else start
+        base = self._gram.copy()
+        if (~ok).any():
+            flat = b[~ok].reshape(-1, k)
+            base -= flat.T @ flat
+        zo = z[ok]
         for _ in range(iterations):
-            c = cs @ x / max(x.sum(), 1e-300)                         # light inside the field
-            rhs = np.einsum("snk,sn->k", bo, zo * c[:, None])
-            x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * len(rhs))
+            c0, c1 = self._colsum @ x, self._dcolsum @ x
+            d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
+            moved = np.abs(d[ok]) > 1e-3
+            model = b[ok].copy()                                                 # (m, nb, K)
+            model[moved] += d[ok][moved][:, None, None] * db[ok][moved]
+            gram = base.copy()
+            if moved.any():
+                old, new = b[ok][moved].reshape(-1, k), model[moved].reshape(-1, k)
+                gram += new.T @ new - old.T @ old
+            lam = self.smoothing * np.trace(gram) / k
+            chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
+                                 lower=True)
+            low = np.tril(chol)
+            c = model.sum(axis=1) @ x / max(x.sum(), 1e-300)          # light inside the field
+            rhs = np.einsum("snk,sn->k", model, zo * c[:, None])
+            x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
         return x / x.sum()
@@ -520,7 +547,7 @@ class PupilCalibration:
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
-              "_basis", "_colsum", "_gram", "_rough", "_spread")
+              "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough", "_spread")
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.3, "pupil_stride": 1,

@@ -89,17 +89,20 @@ class Projection:
         return out.reshape(lead + (self.n, self.nb))
 
 
-def projected_hats(sensor: Sensor, r_m, e, nodes_m, projection: Projection) -> np.ndarray:
-    """``(n, nb, K)`` projected noise-free spots of unit light in each node's hat, at zero
-    shift (light truncated by the field is lost, as in the frames)."""
+def projected_hats(sensor: Sensor, r_m, e, nodes_m, projection: Projection,
+                   shift_block=None) -> np.ndarray:
+    """``(n, nb, K)`` projected noise-free spots of unit light in each node's hat (light
+    truncated by the field is lost, as in the frames), at zero shift or displaced by
+    ``shift_block (n, 2)`` px, block axes (``e (n, 2)`` is in detector axes)."""
     ext = np.concatenate([[2 * nodes_m[0] - nodes_m[1]], nodes_m, [2 * nodes_m[-1] - nodes_m[-2]]])
     n = np.asarray(r_m).size
     out = np.empty((n, projection.nb, len(nodes_m)))
-    zero = np.zeros((n, 2))
+    shift = np.zeros((n, 2)) if shift_block is None else shift_to_detector(sensor, e, shift_block)
+    reach = float(np.abs(shift).max()) if shift_block is not None else 0.0
     for k in range(len(nodes_m)):
         grid = ext[k:k + 3]
         img, _ = SpotModel(sensor, r_m, e, grid, np.array([0.0, 1.0, 0.0]),
-                           max_shift_px=0.0).images(zero)
+                           max_shift_px=reach).images(shift)
         out[:, :, k] = projection(img.reshape(n, -1))
     return out
 
