@@ -19,7 +19,9 @@ Method (plain numpy, vectorised over subapertures; docs/accuracy.md):
    each subaperture's exact geometry (launch position, zenith angle, detector type,
    truncation at the field edge): ``z_s c_s = B_s x``, ``c_s = 1^T B_s x`` the fraction
    of the light inside subaperture s's field (iterated), with a light second-difference
-   smoothing. ``x`` is the light per layer: the profile.
+   smoothing. ``x`` is the light per layer: the profile. ``B`` is blurred by the tilts
+   (their spread about the true centre), and each truncated spot's model is moved by the
+   pull of the per-frame normalisation (:meth:`PupilCalibration.solve`).
 4. From ``x``: each subaperture's noise-free reference (:class:`.model_spot.ProfileSpots`,
    rendered exactly, with exact derivatives) and the CoG bias it implies (the CoG of that
    reference: what a plain CoG reads for a spot at the true centre).
@@ -444,7 +446,8 @@ class PupilCalibration:
         ``(B + d B') x``, with ``B'`` the basis' derivative along e. Without that term the
         spots the field truncates pull the profile (docs/accuracy.md). ``d`` and the field
         fractions come from the previous iterate (``start`` first); ``d`` is applied where
-        it exceeds 1e-3 px."""
+        it exceeds 1e-3 px, and kept within +-s (a spot almost out of its field, whose
+        ``kappa`` is large, is beyond a first-order model)."""
         b, db = self.basis, self._dbasis
         k = b.shape[2]
         x = self.prior if start is None else start
@@ -456,6 +459,7 @@ class PupilCalibration:
         for _ in range(iterations):
             c0, c1 = self._colsum @ x, self._dcolsum @ x
             d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
+            d = np.clip(d, -self.blur_px, self.blur_px)     # first order: a pull within the blur
             moved = np.abs(d[ok]) > 1e-3
             model = b[ok].copy()                                                 # (m, nb, K)
             model[moved] += d[ok][moved][:, None, None] * db[ok][moved]
