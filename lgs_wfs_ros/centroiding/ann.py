@@ -73,7 +73,8 @@ from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
 #: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
-#: reference; on a polar detector ann_marg (the column sums along e) is the more accurate
+#: reference; on a polar detector ann_hyper (filters its reference sets, on the column sums
+#: along e) is the more accurate
 DEFAULT_MODELS = {"polar": "ann_hyper", "cartesian": "ann_ref"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."

@@ -455,17 +455,18 @@ class PupilCalibration:
         if (~ok).any():
             flat = b[~ok].reshape(-1, k)
             base -= flat.T @ flat
-        zo = z[ok]
+        bo, dbo, zo = b[ok], db[ok], z[ok]
+        cs0, cs1 = self._colsum[ok], self._dcolsum[ok]
         for _ in range(iterations):
-            c0, c1 = self._colsum @ x, self._dcolsum @ x
+            c0, c1 = cs0 @ x, cs1 @ x
             d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
             d = np.clip(d, -self.blur_px, self.blur_px)     # first order: a pull within the blur
-            moved = np.abs(d[ok]) > 1e-3
-            model = b[ok].copy()                                                 # (m, nb, K)
-            model[moved] += d[ok][moved][:, None, None] * db[ok][moved]
+            moved = np.abs(d) > 1e-3
+            model = bo.copy()                                                    # (m, nb, K)
+            model[moved] += d[moved][:, None, None] * dbo[moved]
             gram = base.copy()
             if moved.any():
-                old, new = b[ok][moved].reshape(-1, k), model[moved].reshape(-1, k)
+                old, new = bo[moved].reshape(-1, k), model[moved].reshape(-1, k)
                 gram += new.T @ new - old.T @ old
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
