@@ -120,3 +120,60 @@ def test_hypertrain_export_computes_the_trained_network():
         want = net(u, r, lf).numpy()
     model = hypertrain.build_model(net, spec, {})
     np.testing.assert_allclose(margtrain.predict(model, pairs), want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["ann_marg", "ann_hyper"])
+def test_lgs_wfs_train_writes_the_marginal_models_record(name, tmp_path):
+    """``lgs-wfs train`` of either marginal recipe (one training record built for both by
+    ``margtrain.record``): the model carries its recipe, data, prior and check error, the
+    card names it, and the centroider runs it on a polar pupil's frame."""
+    pytest.importorskip("torch")
+    from lgs_wfs_ros import cli
+    from lgs_wfs_ros.learning import card, export
+    assert cli.main(["train", name, "--out", str(tmp_path), "--samples", "1500", "--quick"]) == 0
+    path = tmp_path / f"{name}.onnx"
+    meta = export.read_metadata(path)
+    rec = meta["lgs_wfs.training"]
+    assert rec["samples"] == 1500 and rec["quick"] is True and rec["seed"] == 16
+    assert rec["recipe"]["name"] == name and rec["parameters"] > 0 and rec["epochs_run"] >= 2
+    assert rec["photons_range"] == list(refdata.MARGINAL_SPEC.photons)
+    assert rec["check"]["n"] == margtrain.CHECK_N and rec["check"]["seed"] == margtrain.CHECK_SEED
+    pairs = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
+    along = np.abs(margtrain.predict(path, pairs) - pairs.y).mean()
+    assert rec["check"]["mean_err_px"] == pytest.approx(along, rel=1e-3)   # what the model does
+    assert ("spec" in rec) == (name == "ann_hyper")
+    assert meta["lgs_wfs.domain"] == margtrain.domain(refdata.MARGINAL_SPEC)
+    text = (tmp_path / "README.md").read_text()
+    assert f"`{name}`" in text and text == card.render(tmp_path)
+    sensor = Sensor(detector="polar", photons=1000.0)
+    c = options.build("ann", sensor, {"model": str(path)})
+    counts = np.random.default_rng(2).poisson(5.0, sensor.frame_shape).astype(np.uint16)
+    assert np.isfinite(c.centroid(counts)).all()
+
+
+def test_hypertrain_experiment_cli_caches_data_and_exports(tmp_path, monkeypatch, capsys):
+    """``python -m lgs_wfs_ros.learning.hypertrain --generate``: the cached chunk holds
+    ``margtrain.generate``'s own batches, files already there are kept, and the exported
+    ONNX computes the trained network (its check error equals the torch one)."""
+    pytest.importorskip("torch")
+    from lgs_wfs_ros.learning import hypertrain
+    monkeypatch.setattr(hypertrain, "CHUNK_BATCHES", 2)
+    monkeypatch.setattr(hypertrain, "BATCH", 48)
+    monkeypatch.setattr(hypertrain, "MONITOR_N", 200)
+    monkeypatch.setattr(margtrain, "CHECK_N", 150)
+    data, out = tmp_path / "data", tmp_path / "h.onnx"
+    argv = ["--data", str(data), "--chunks", "1", "--k", "4", "--hyper", "8", "--trunk", "6",
+            "--epochs", "2", "--out", str(out), "--generate"]
+    hypertrain.main(argv)
+    chunk = hypertrain.load_pairs(data / "train_000.npz")
+    assert chunk.y.shape[0] == 96
+    second = refdata.marginal_pairs(np.random.default_rng([16, 1]), 48)
+    np.testing.assert_array_equal(chunk.marg[48:], second.marg)
+    np.testing.assert_array_equal(chunk.y[48:], second.y)
+    record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert record["samples"] == 96 and record["check"]["n"] == 150
+    assert record["check_onnx_mae_px"] == pytest.approx(record["check"]["mean_err_px"], abs=1e-4)
+    assert out.with_suffix(".pt").exists()
+    stamp = (data / "train_000.npz").stat().st_mtime_ns
+    hypertrain.cache_data(data, 1)
+    assert (data / "train_000.npz").stat().st_mtime_ns == stamp

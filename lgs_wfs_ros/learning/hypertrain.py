@@ -344,19 +344,13 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
     del data
     check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
+    weights = n_weights(net)
+    training = margtrain.record(
+        rec, samples, seed, gen_s, hist, min(h["monitor_mae_px"] for h in hist),
+        _mae(net, _tensors(check)), "fresh spots of the training prior (margtrain's check set)",
+        spec=asdict(spec), parameters=int(sum(v for k, v in weights.items() if k != "filters_per_subap")),
+        weights=weights)
     prior = refdata.MARGINAL_SPEC
-    training = {"recipe": rec.to_dict(), "recipe_line": rec.line(samples), "optimizer": "adam",
-                "seed": seed, "samples": samples, "quick": False, "spec": asdict(spec),
-                "parameters": int(sum(v for k, v in n_weights(net).items() if k != "filters_per_subap")),
-                "weights": n_weights(net), "photons": None,
-                "photons_range": list(prior.photons), "profiles": prior.describe(),
-                "generate_seconds": round(gen_s, 1),
-                "fit_seconds": round(hist[-1]["seconds"], 1) if hist else 0.0,
-                "epochs_run": len(hist),
-                "final_monitor_mae_px": min(h["monitor_mae_px"] for h in hist),
-                "check": {"mean_err_px": _mae(net, _tensors(check)), "n": margtrain.CHECK_N,
-                          "seed": margtrain.CHECK_SEED,
-                          "what": "fresh spots of the training prior (margtrain's check set)"}}
     model = build_model(net, spec, {"lgs_wfs.training": training,
                                     "lgs_wfs.domain": margtrain.domain(prior)}, rec.name)
     path = export.save(model, Path(target))
@@ -383,6 +377,7 @@ def load_chunks(paths) -> refdata.MarginalPairs:
 
 
 CHUNK_BATCHES, BATCH = 25, 4096          # a cached chunk: batches [25 c, 25 (c + 1)) of 4096 spots
+MONITOR_N = 20_000                       # spots in the cached monitor set
 
 
 def cache_data(data_dir, chunks: int, seed: int = 16, log=print) -> None:
@@ -399,7 +394,7 @@ def cache_data(data_dir, chunks: int, seed: int = 16, log=print) -> None:
     if not (out / "check.npz").exists():
         save("check.npz", margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False))
     if not (out / "monitor.npz").exists():
-        save("monitor.npz", margtrain.generate(20_000, margtrain.MONITOR_SEED + seed, progress=False))
+        save("monitor.npz", margtrain.generate(MONITOR_N, margtrain.MONITOR_SEED + seed, progress=False))
     for c in range(chunks):
         f = out / f"train_{c:03d}.npz"
         if f.exists():

@@ -125,6 +125,21 @@ def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED) -> floa
 domain = domains.marginal_domain      # the training domain: the spots' ranges, polar only
 
 
+def record(rec: recipes.Recipe, samples: int, seed: int, generate_s: float, history: list,
+           monitor_mae_px: float, check_mae_px: float, check_what: str, **extra) -> dict:
+    """The training record a model on the marginal prior carries (``lgs_wfs.training``):
+    recipe, data, prior, timings, monitor and check errors (px), plus ``extra`` fields."""
+    prior = refdata.MARGINAL_SPEC
+    return {"recipe": rec.to_dict(), "recipe_line": rec.line(samples), "optimizer": "adam",
+            "seed": seed, "samples": samples, "quick": False, **extra, "photons": None,
+            "photons_range": list(prior.photons), "profiles": prior.describe(),
+            "generate_seconds": round(generate_s, 1),
+            "fit_seconds": round(history[-1]["seconds"], 1) if history else 0.0,
+            "epochs_run": len(history), "final_monitor_mae_px": monitor_mae_px,
+            "check": {"mean_err_px": check_mae_px, "n": CHECK_N, "seed": CHECK_SEED,
+                      "what": check_what}}
+
+
 def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: int,
           progress: bool = True, time_budget_s: float | None = None) -> dict:
     """Train ``rec`` into ``target`` (an ONNX path); returns the training record."""
@@ -144,18 +159,10 @@ def train(rec: recipes.Recipe, target: Path, samples: int, seed: int, epochs: in
                     time_budget_s=time_budget_s, progress=progress, loss=rec.loss)
     model = build_model(layers_of(net), p, {})
     err = np.abs(predict(model, mon) - mon.y)
+    training = record(rec, samples, seed, gen_s, hist, float(err.mean()), check_error(model),
+                      "fresh spots of the training prior (margtrain.check_error)",
+                      parameters=n_parameters(rec.sizes), monitor_spots=int(err.size))
     prior = refdata.MARGINAL_SPEC
-    training = {"recipe": rec.to_dict(), "recipe_line": rec.line(samples), "optimizer": "adam",
-                "seed": seed, "samples": samples, "quick": False,
-                "parameters": n_parameters(rec.sizes), "photons": None,
-                "photons_range": list(prior.photons), "profiles": prior.describe(),
-                "generate_seconds": round(gen_s, 1),
-                "fit_seconds": round(hist[-1]["seconds"], 1) if hist else 0.0,
-                "epochs_run": len(hist),
-                "final_monitor_mae_px": float(err.mean()),
-                "monitor_spots": int(err.size),
-                "check": {"mean_err_px": check_error(model), "n": CHECK_N, "seed": CHECK_SEED,
-                          "what": "fresh spots of the training prior (margtrain.check_error)"}}
     model = build_model(layers_of(net), p, {"lgs_wfs.training": training,
                                             "lgs_wfs.domain": domain(prior)}, rec.name)
     path = export.save(model, Path(target))
@@ -169,4 +176,4 @@ def train_recipe(name: str, **kwargs) -> dict:
     return _train_recipe(name, trainer=train, **kwargs)
 
 
-__all__ = ["train_recipe", "train", "build_model", "features", "generate", "predict", "domain"]
+__all__ = ["train_recipe", "train", "record", "build_model", "features", "generate", "predict", "domain"]
