@@ -455,29 +455,45 @@ class PupilCalibration:
         if (~ok).any():
             flat = b[~ok].reshape(-1, k)
             base -= flat.T @ flat
-        bo, dbo, zo = b[ok], db[ok], z[ok]
-        cs0, cs1 = self._colsum[ok], self._dcolsum[ok]
+        if ok.all():                                         # no copies of the basis
+            bo, dbo, zo, cs0, cs1 = b, db, z, self._colsum, self._dcolsum
+        else:
+            bo, dbo, zo = b[ok], db[ok], z[ok]
+            cs0, cs1 = self._colsum[ok], self._dcolsum[ok]
         for _ in range(iterations):
             c0, c1 = cs0 @ x, cs1 @ x
             d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
             d = np.clip(d, -self.blur_px, self.blur_px)     # first order: a pull within the blur
-            moved = np.abs(d) > 1e-3
-            model = bo.copy()                                                    # (m, nb, K)
-            model[moved] += d[moved][:, None, None] * dbo[moved]
-            gram = base.copy()
-            if moved.any():
-                old, new = bo[moved].reshape(-1, k), model[moved].reshape(-1, k)
-                gram += new.T @ new - old.T @ old
+            d[np.abs(d) <= 1e-3] = 0.0
+            gram = base + self._moved_gram(bo, dbo, d)
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
-            c = model.sum(axis=1) @ x / max(x.sum(), 1e-300)          # light inside the field
-            rhs = np.einsum("snk,sn->k", model, zo * c[:, None])
+            c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
+            w = zo * c[:, None]                                                  # (m, nb)
+            rhs = np.einsum("snk,sn->k", bo, w) + np.einsum("snk,sn->k", dbo, w * d[:, None])
             x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
         return x / x.sum()
+
+    @staticmethod
+    def _moved_gram(b: np.ndarray, db: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """``(K, K)``: what moving each subaperture's model by ``d (m,)`` px along e adds to
+        the normal matrix, ``sum_s (B_s + d_s B'_s)^T (B_s + d_s B'_s) - B_s^T B_s =
+        sum_s d_s (C_s + C_s^T) + d_s^2 B'_s^T B'_s`` with ``C_s = B_s^T B'_s``, over the
+        subapertures that move (``b``, ``db``: ``(m, nb, K)``): two products, no model copy."""
+        k = b.shape[2]
+        moved = np.flatnonzero(d)
+        if moved.size == 0:
+            return np.zeros((k, k))
+        if moved.size < d.size:
+            b, db, d = b[moved], db[moved], d[moved]
+        flat = b.reshape(-1, k)
+        scaled = (db * d[:, None, None]).reshape(-1, k)
+        cross = flat.T @ scaled
+        return cross + cross.T + scaled.T @ scaled
 
     # -- what the profile implies -------------------------------------------------------
     @property
