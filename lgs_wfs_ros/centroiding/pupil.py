@@ -445,9 +445,11 @@ class PupilCalibration:
         ``d = -s^2 kappa`` (``kappa = d ln c / dt``, ``c(t)`` the light the field keeps):
         ``(B + d B') x``, with ``B'`` the basis' derivative along e. Without that term the
         spots the field truncates pull the profile (docs/accuracy.md). ``d`` and the field
-        fractions come from the previous iterate (``start`` first); ``d`` is applied where
-        it exceeds 1e-3 px, and kept within +-s (a spot almost out of its field, whose
-        ``kappa`` is large, is beyond a first-order model)."""
+        fractions come from the previous iterate (``start`` first: the last refit's profile,
+        so a steady profile needs one solve; at most ``iterations``, stopping when the pull
+        and the fields' light fractions move by less than ``PULL_TOL_PX`` and ``FRACTION_TOL``); ``d`` is applied where it exceeds
+        ``PULL_TOL_PX``, and kept within +-s (a spot almost out of its field, whose ``kappa``
+        is large, is beyond a first-order model)."""
         b, db = self.basis, self._dbasis
         k = b.shape[2]
         x = self.prior if start is None else start
@@ -460,23 +462,34 @@ class PupilCalibration:
         else:
             bo, dbo, zo = b[ok], db[ok], z[ok]
             cs0, cs1 = self._colsum[ok], self._dcolsum[ok]
+        used = None
         for _ in range(iterations):
-            c0, c1 = cs0 @ x, cs1 @ x
-            d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
-            d = np.clip(d, -self.blur_px, self.blur_px)     # first order: a pull within the blur
-            d[np.abs(d) <= 1e-3] = 0.0
+            d = self._pull(cs0 @ x, cs1 @ x)
+            c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
+            if used is not None and (np.abs(d - used[0]).max() <= PULL_TOL_PX
+                                     and np.abs(c - used[1]).max() <= FRACTION_TOL):
+                break                                        # what the last solve used
+            used = d, c
             gram = base + self._moved_gram(bo, dbo, d)
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
-            c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
             w = zo * c[:, None]                                                  # (m, nb)
             rhs = np.einsum("snk,sn->k", bo, w) + np.einsum("snk,sn->k", dbo, w * d[:, None])
             x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
         return x / x.sum()
+
+    def _pull(self, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
+        """``(m,)`` px: the normalisation's first-order pull ``-s^2 c'/c`` along e from the
+        field fractions ``c0`` and their derivatives ``c1``, kept within +-s (beyond that a
+        first-order model does not hold), zero below ``PULL_TOL_PX``."""
+        d = np.where(c0 > 0, -self.blur_px ** 2 * c1 / np.where(c0 > 0, c0, 1.0), 0.0)
+        d = np.clip(d, -self.blur_px, self.blur_px)
+        d[np.abs(d) <= PULL_TOL_PX] = 0.0
+        return d
 
     @staticmethod
     def _moved_gram(b: np.ndarray, db: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -565,6 +578,11 @@ class PupilCalibration:
                 "nodes": int(self.nodes_m.size),
                 "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
 
+
+# The normalisation's pull below this (px) is not applied, and the solve stops once the pull
+# its last iterate implies is within this of the one it used (one solve a refit when steady).
+PULL_TOL_PX = 1e-3
+FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
