@@ -74,7 +74,9 @@ _PUPIL = (
      "the end of each period, reproducible frame for frame (replay, benchmarks)."),
     ("pupil_async_lag", 0, "With pupil_async: install each refit exactly this many frames after "
      "the period end that started it, waiting then if it is late (reproducible: a replay gives "
-     "the live numbers), e.g. 700 = 1 s at 700 Hz; 0: whenever it is ready.",
+     "the live numbers); keep it as short as the refits allow, e.g. 140 (one default period): "
+     "each refit then serves later frames, which costs accuracy where the profile moves "
+     "(docs/accuracy.md, a live node's refit latency); 0: whenever it is ready.",
      {"low": 0, "high": 1000000}),
     ("pupil_trend", True, "Extrapolate the profile estimate to the frames it will serve, from "
      "its drift (two averages, time constants T and 2T): no lag behind a profile evolving "
