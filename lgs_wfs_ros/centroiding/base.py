@@ -20,6 +20,7 @@ import numpy as np
 
 from ..optics import geometry
 from ..sensor import Sensor
+from .altitude import AltitudeTracker
 
 
 class Centroider:
@@ -156,9 +157,18 @@ class Centroider:
         return stack.astype(dtype, copy=False)
 
     def finish(self, out: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """Block-pixel-axes ``(n, 2)`` -> detector axes float64, NaN where not ``ok``."""
+        """Block-pixel-axes ``(n, 2)`` -> detector axes float64, NaN where not ``ok``; with a
+        pupil calibration whose ``altitude_s`` is set, corrected for the sodium altitude's
+        drift since its last refit (:class:`.altitude.AltitudeTracker`)."""
         out = np.asarray(self.to_detector(out), dtype=np.float64)
         out[~ok] = np.nan
+        pupil = self.__dict__.get("pupil")
+        if pupil is not None and pupil.altitude_s > 0 and out.ndim == 2:
+            tracker = self.__dict__.get("_altitude")
+            if tracker is None:
+                tracker = self._altitude = AltitudeTracker(
+                    self.layout, pupil.altitude_s, self.sensor.frame_rate_hz, self.to_detector)
+            out = tracker.apply(out, ok, pupil)
         return out
 
     def prepare(self, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -78,6 +78,11 @@ _PUPIL = (
      "each refit then serves later frames, which costs accuracy where the profile moves "
      "(docs/accuracy.md, a live node's refit latency); 0: whenever it is ready.",
      {"low": 0, "high": 1000000}),
+    ("pupil_altitude_s", 0.0, "Time constant (s) of a tracker of the sodium layer's altitude "
+     "between profile refits, from the slopes' pupil-wide pattern along the elongation (focus "
+     "with a centre launch): the slopes then lose the atmosphere's focus slower than this, as "
+     "an LGS cannot tell it from the layer's altitude; e.g. 0.05; 0: off.",
+     {"low": 0.0, "high": 3600.0}),
     ("pupil_trend", True, "Extrapolate the profile estimate to the frames it will serve, from "
      "its drift (two averages, time constants T and 2T): no lag behind a profile evolving "
      "steadily; false: the exponential average itself (lags it by ~T, steadier on a steady "

@@ -85,13 +85,17 @@ class PupilCalibration:
             average of time constant ``2 time_constant_s``, to the middle of the period the
             refit will serve (True, default: no lag behind a steadily evolving profile, a
             little more focus noise on a steady one); False: the average itself.
+        altitude_s: time constant (s) of the estimators' :class:`.altitude.AltitudeTracker`,
+            which follows the layer's altitude between refits from the slopes (0: off). The
+            calibration only carries the setting; the centroider applies it.
     """
 
     def __init__(self, sensor, period: int = 140, time_constant_s: float = 0.3, stride: int = 1,
                  nodes: int = 120, smoothing: float = 1e-3, prior_fwhm_m: float = 10e3,
                  max_shift_px: float = 2.0, background: float = 0.0, asynchronous: bool = False,
-                 lag: int = 0, trend: bool = True):
+                 lag: int = 0, trend: bool = True, altitude_s: float = 0.0):
         self.sensor = sensor
+        self.altitude_s = number("pupil_altitude_s", altitude_s, minimum=0)
         if not isinstance(asynchronous, (bool, np.bool_)):
             raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
         self.asynchronous = bool(asynchronous)
@@ -575,6 +579,7 @@ class PupilCalibration:
         return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
                 "tilt_blur_px": round(self.blur_px, 3),
                 "time_constant_s": self.time_constant_s, "stride": self.stride,
+                "altitude_s": self.altitude_s,
                 "nodes": int(self.nodes_m.size),
                 "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
 
@@ -590,7 +595,8 @@ _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "vers
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.3, "pupil_stride": 1,
-                   "pupil_async": False, "pupil_async_lag": 0, "pupil_trend": True}
+                   "pupil_async": False, "pupil_async_lag": 0, "pupil_trend": True,
+                   "pupil_altitude_s": 0.0}
 
 
 def from_options(sensor, options: dict, background: float) -> PupilCalibration:
@@ -599,7 +605,8 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
     return PupilCalibration(sensor, period=o["pupil_period"],
                             time_constant_s=o["pupil_time_constant_s"], stride=o["pupil_stride"],
                             background=background, asynchronous=o["pupil_async"],
-                            lag=o["pupil_async_lag"], trend=o["pupil_trend"])
+                            lag=o["pupil_async_lag"], trend=o["pupil_trend"],
+                            altitude_s=o["pupil_altitude_s"])
 
 
 __all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
