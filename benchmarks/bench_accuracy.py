@@ -56,6 +56,7 @@ from lgs_wfs_ros.sensor import Sensor  # noqa: E402
 HERE = Path(__file__).resolve().parent
 MAS = 500.0
 PHOTONS = (316.0, 1000.0)
+ALTITUDE_S = 0.05                                  # the altitude tracker's time constant, s
 #: label -> (algorithm, options over the table's defaults)
 ESTIMATORS = {
     "cog": ("cog", {}),
@@ -69,11 +70,15 @@ ESTIMATORS = {
     "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
     "ann_hyper": ("ann", {"model": "ann_hyper"}), # polar only; the default polar ann
+    # with the altitude tracker (off by default: it takes the atmosphere's focus too)
+    "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
+    "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),
 }
 QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "corr", "ann_pupil", "ann_marg",
-                    "ann_hyper")
+                    "ann_hyper", "ml_alt", "cmf_alt")
 #: the estimators issue 14's and 15's "done when" name, for --long
-LONG_ESTIMATORS = ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper")
+LONG_ESTIMATORS = ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ml_alt",
+                   "cmf_alt")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 

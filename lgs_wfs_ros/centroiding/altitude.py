@@ -41,6 +41,7 @@ class AltitudeTracker:
 
     def __init__(self, layout, time_constant_s: float, frame_rate_hz: float, to_detector):
         self.mode = np.asarray(layout.r_m, float)[:, None] * np.asarray(layout.e, float)  # (n, 2)
+        self._norm = float(np.vdot(self.mode, self.mode)) or 1.0
         self.decay = math.exp(-1.0 / (time_constant_s * frame_rate_hz))
         self.to_detector = to_detector
         self.reset()
@@ -54,9 +55,11 @@ class AltitudeTracker:
 
     def coefficient(self, slopes: np.ndarray, ok: np.ndarray) -> float:
         """``a``: the least-squares amplitude of ``m`` in ``slopes (n, 2)`` over ``ok (n,)``."""
+        if ok.all():
+            return float(np.vdot(slopes, self.mode)) / self._norm
         m = self.mode[ok]
-        den = float((m * m).sum())
-        return float((slopes[ok] * m).sum()) / den if den > 0 else 0.0
+        den = float(np.vdot(m, m))
+        return float(np.vdot(slopes[ok], m)) / den if den > 0 else 0.0
 
     def apply(self, slopes: np.ndarray, ok: np.ndarray, calibration) -> np.ndarray:
         """``(n, 2)`` detector-axes slopes corrected (a new array), NaN rows kept; updates
@@ -70,7 +73,7 @@ class AltitudeTracker:
         """
         self._follow(calibration)
         out = slopes if self.average is None else slopes - self.average * self.mode
-        good = ok & np.isfinite(slopes).all(axis=1)
+        good = ok if ok.all() and np.isfinite(slopes).all() else ok & np.isfinite(slopes).all(axis=1)
         if good.any():
             a = self.coefficient(slopes, good)
             self.average = a if self.average is None else (
