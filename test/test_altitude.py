@@ -18,7 +18,7 @@ class FakeCalibration:
     its references (block axes; cartesian: the detector's)."""
 
     def __init__(self):
-        self.fits, self.version, self.bias = 0, 1, np.zeros((LAYOUT.n_valid, 2))
+        self.fits, self.version, self.bias = 1, 1, np.zeros((LAYOUT.n_valid, 2))
 
     def refit(self, moved_by: float):
         """A refit whose references sit ``moved_by`` px per metre of r further along m."""
@@ -78,6 +78,38 @@ def test_tracker_keeps_a_frame_without_the_pattern_and_nan_rows():
         tr.coefficient(slopes, np.ones_like(ok)) + 0.01)
 
 
+def test_tracker_waits_for_the_first_fit_and_restarts_on_a_large_refit():
+    """Against the prior (no fit yet) nothing is corrected; a refit that moves the
+    references by more than RESTART_PX restarts the average (the old slopes were not
+    shifts of the new references), a small one moves it."""
+    from lgs_wfs_ros.centroiding import altitude
+    rng = np.random.default_rng(5)
+    cal = FakeCalibration()
+    cal.fits = 0
+    tr = AltitudeTracker(LAYOUT, 0.05, 700.0, lambda v: v)
+    ok = np.ones(LAYOUT.n_valid, bool)
+    frame = lambda a: rng.normal(0.0, 0.05, (LAYOUT.n_valid, 2)) + a * MODE  # noqa: E731
+    s = frame(0.01)
+    np.testing.assert_array_equal(tr.apply(s, ok, cal), s)
+    assert tr.average is None
+    cal.refit(0.0)                                    # the first fit
+    tr.apply(frame(0.05), ok, cal)                    # its install frame does not count
+    assert tr.average is None
+    tr.apply(frame(2e-3), ok, cal)
+    assert tr.average == pytest.approx(2e-3, abs=2e-4)
+    reach = np.hypot(*MODE.T).max()
+    cal.refit(0.5 * altitude.RESTART_PX / reach)      # small: the average moves with it
+    tr.apply(frame(2e-3), ok, cal)
+    tr.apply(frame(2e-3 - 0.5 * altitude.RESTART_PX / reach), ok, cal)
+    expected = 2e-3 - 0.5 * altitude.RESTART_PX / reach
+    assert tr.average == pytest.approx(expected, abs=3e-4)
+    cal.refit(3.0 * altitude.RESTART_PX / reach)      # large: start again after this frame
+    tr.apply(frame(0.05), ok, cal)
+    assert tr.average is None
+    tr.apply(frame(-1e-3), ok, cal)
+    assert tr.average == pytest.approx(-1e-3, abs=2e-4)
+
+
 def test_option_applies_the_tracker_to_a_calibrated_estimator():
     """``pupil_altitude_s`` through the options table: off, the slopes are today's; on, they
     differ from them by a multiple of the altitude pattern only."""
@@ -88,12 +120,16 @@ def test_option_applies_the_tracker_to_a_calibrated_estimator():
     assert off.pupil.altitude_s == 0.0 and on.pupil.altitude_s == 0.01
     rng = np.random.default_rng(0)
     mode = lay.r_m[:, None] * lay.e
-    for k in range(4):
+    for k in range(5):
         frame = rng.poisson(3.0, sensor.frame_shape).astype(np.uint16)
+        if k == 1:                                    # one fit for both (no correction before)
+            off.pupil.refit()
+            on.pupil.refit()
         a, b = off.centroid(frame), on.centroid(frame)
         coef = ((a - b) * mode).sum() / (mode * mode).sum()
         np.testing.assert_allclose(a - b, coef * mode, atol=1e-9)
-        if k:
-            assert abs(coef) > 0                      # it did correct
+        if k >= 3:
+            assert abs(coef) > 0                      # it did correct (not before the fit's
+                                                      # install frame has passed)
     with pytest.raises(ValueError, match="pupil_altitude_s"):
         options.build("cog", sensor, {"bias": "pupil", "pupil_altitude_s": -1.0})

@@ -28,6 +28,10 @@ import math
 
 import numpy as np
 
+#: a refit that moves the references' CoG pattern by more than this (px, at the farthest
+#: subaperture) restarts the average instead of moving it
+RESTART_PX = 0.1
+
 
 class AltitudeTracker:
     """Per-frame correction of the slopes for the sodium altitude's drift since the refit.
@@ -42,6 +46,7 @@ class AltitudeTracker:
     def __init__(self, layout, time_constant_s: float, frame_rate_hz: float, to_detector):
         self.mode = np.asarray(layout.r_m, float)[:, None] * np.asarray(layout.e, float)  # (n, 2)
         self._norm = float(np.vdot(self.mode, self.mode)) or 1.0
+        self._reach = float(np.max(np.hypot(*self.mode.T), initial=0.0))   # m, largest |m|
         self.decay = math.exp(-1.0 / (time_constant_s * frame_rate_hz))
         self.to_detector = to_detector
         self.reset()
@@ -71,8 +76,12 @@ class AltitudeTracker:
             ok: ``(n,)`` bool, subapertures measured this frame.
             calibration: the :class:`.pupil.PupilCalibration` whose references were used.
         """
-        self._follow(calibration)
+        state = self._follow(calibration)
+        if state == "off":
+            return slopes
         out = slopes if self.average is None else slopes - self.average * self.mode
+        if state == "refit":
+            return out
         good = ok if ok.all() and np.isfinite(slopes).all() else ok & np.isfinite(slopes).all(axis=1)
         if good.any():
             a = self.coefficient(slopes, good)
@@ -80,20 +89,32 @@ class AltitudeTracker:
                 self.decay * self.average + (1.0 - self.decay) * a)
         return out
 
-    def _follow(self, calibration) -> None:
+    def _follow(self, calibration) -> str:
         """At a refit, move the average by what the new references change in the slopes'
-        ``m`` component (minus the change of their CoG along ``m``); after a reset of the
-        calibration, start again."""
-        if calibration.fits < self._fits:
+        ``m`` component (minus the change of their CoG along ``m``); start again after a
+        reset of the calibration, and at a refit that moves the references by more than
+        ``RESTART_PX`` at the farthest subaperture (the first fits, from the prior: the
+        slopes against the old references were not shifts of the new ones). Returns "off"
+        while the calibration has not fitted yet (no correction against the prior),
+        "refit" on the frame a refit is installed (whose slopes may have been measured
+        against either references, so they do not enter the average), else "on"."""
+        if calibration.fits < self._fits or calibration.fits == 0:
             self.reset()
         self._fits = calibration.fits
+        if calibration.fits == 0:
+            return "off"
         if calibration.version == self._version:
-            return
+            return "on"
         bias = np.asarray(self.to_detector(calibration.cog_bias()), float)
         ref = self.coefficient(bias, np.isfinite(bias).all(axis=1))
         if self.average is not None and self._version is not None:
-            self.average -= ref - self._reference
+            step = ref - self._reference
+            if abs(step) * self._reach > RESTART_PX:
+                self.average = None
+            else:
+                self.average -= step
         self._version, self._reference = calibration.version, ref
+        return "refit"
 
 
 __all__ = ["AltitudeTracker"]
