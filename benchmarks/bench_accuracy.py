@@ -427,8 +427,7 @@ def rows(res: dict) -> list[dict]:
     """benchmarks/run.py rows of a result."""
     rows = []
     for ph in ("316", "1000"):
-        for lb in ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ml_alt",
-                   "cmf_alt"):
+        for lb in LONG_ESTIMATORS:
             vals = [c["photons"][ph][lb]["ratio_crb"] for c in res["cases"]
                     if c["tilts"] == "ar1" and lb in c["photons"][ph]]
             if vals:

@@ -451,9 +451,10 @@ class PupilCalibration:
         spots the field truncates pull the profile (docs/accuracy.md). ``d`` and the field
         fractions come from the previous iterate (``start`` first: the last refit's profile,
         so a steady profile needs one solve; at most ``iterations``, stopping when the pull
-        and the fields' light fractions move by less than ``PULL_TOL_PX`` and ``FRACTION_TOL``); ``d`` is applied where it exceeds
-        ``PULL_TOL_PX``, and kept within +-s (a spot almost out of its field, whose ``kappa``
-        is large, is beyond a first-order model)."""
+        and the fields' light fractions move by less than ``PULL_TOL_PX`` and
+        ``FRACTION_TOL``); ``d`` is applied where it exceeds ``PULL_TOL_PX``, and kept within
+        +-s (a spot almost out of its field, whose ``kappa`` is large, is beyond a
+        first-order model)."""
         b, db = self.basis, self._dbasis
         k = b.shape[2]
         x = self.prior if start is None else start
