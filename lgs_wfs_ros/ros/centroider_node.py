@@ -37,6 +37,7 @@ from ..centroiding.ann import ModelNotFoundError
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from ..transport import TRANSPORTS, frames as frame_transport, shm
+from .handover import Handover
 from .spinning import DRAIN, run_node, take_queued
 from . import health, parameters, picture, qos
 
@@ -134,10 +135,12 @@ class CentroiderNode(Node):
         self._next_error = 0.0
         self.create_timer(1.0, self._follow_error_subscribers)
         self._frame_sub = self._inlet = None
+        self._handover = None            # a frame queue change under way (handover.py)
         self._sensor_id = shm.sensor_id(self.sensor)
         self._shm = self.get_parameter("frame_transport").value == "shm"
         self._subscribe_frames(self.sensor)
-        self.create_subscription(String, "sensor", self._on_sensor, qos.LATCHED)
+        self._sensor_sub = self.create_subscription(String, "sensor", self._on_sensor,
+                                                    qos.LATCHED)
         self._log_timer = self.create_timer(self.get_parameter("log_period_s").value,
                                             self._log_counters)
         self._announce("start")
@@ -233,7 +236,8 @@ class CentroiderNode(Node):
 
     def _subscribe_frames(self, sensor: Sensor):
         """(Re)create the frame subscription with a queue sized for the sensor's rate and
-        frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged."""
+        frame size (``qos.frame_qos``: 0.14 s of frames); kept when the depth is unchanged.
+        The old subscription is handed over, not dropped (:class:`handover.Handover`)."""
         if self._shm:       # frames come through shared memory: one inlet, never recreated
             if self._inlet is None:      # (that would lose its queue; the depth is the most
                 try:                     # the service allows, whatever the sensor)
@@ -243,12 +247,25 @@ class CentroiderNode(Node):
                     raise ValueError(str(exc)) from exc
             return
         profile = qos.frame_qos(sensor)
-        if self._frame_sub is not None:
-            if self._frame_sub.qos_profile.depth == profile.depth:
-                return
-            self.destroy_subscription(self._frame_sub)
-        self._frame_sub = self.create_subscription(Image, "frame", self._on_frame, profile,
-                                                   raw=True)
+        old = self._frame_sub
+        if old is not None and old.qos_profile.depth == profile.depth:
+            return
+        new = self.create_subscription(
+            Image, "frame", lambda cdr, info: self._on_frame(cdr, info, new), profile, raw=True)
+        self._frame_sub = new
+        if old is None:
+            return
+        last, self._handover = self._handover, Handover(self, old, new, Image)
+        if last is not None:             # changed again before the last change ended
+            self._centroid_taken(last.finish_old())
+            self._handover.seen |= last.seen
+
+    def _take_waiting_sensor(self):
+        """Apply a sensor description already waiting on the sensor topic: after a slow
+        start the executor may serve the frame queue first, and its frames would be judged
+        against the default sensor."""
+        for msg, _ in take_queued(self._sensor_sub, String, 1, raw=False):
+            self._on_sensor(msg)
 
     # -- frames ---------------------------------------------------------------------
     def _reject(self, condition: str, detail: str = "", level=health.WARN):
@@ -257,15 +274,28 @@ class CentroiderNode(Node):
         self.counters.last_reason = condition + (f": {detail}" if detail else "")
         self.health.note(f"frames rejected, {condition}", detail, level)
 
-    def _on_frame(self, cdr: bytes):
-        """One frame from the executor, then up to DRAIN more taken directly: rclpy's executor
-        costs ~0.3 ms of Python per message (wait set, task), more than a single-subaperture
-        frame's whole budget at 5 kHz. The accepted small frames of one drain are centroided
-        in one vectorised call (``centroid_many``), in time order; full frames one by one
-        (batching them only adds memory traffic and latency)."""
-        batch = [self._accept(cdr)]
-        for queued in take_queued(self._frame_sub, Image, DRAIN):
-            batch.append(self._accept(queued[0]))
+    def _on_frame(self, cdr: bytes, info: dict, sub):
+        """One frame from the executor (``info``: its message info; ``sub``: the subscription
+        that gave it), then up to DRAIN more taken directly: rclpy's executor costs ~0.3 ms
+        of Python per message (wait set, task), more than a single-subaperture frame's whole
+        budget at 5 kHz. The accepted small frames of one drain are centroided in one
+        vectorised call (``centroid_many``), in time order; full frames one by one (batching
+        them only adds memory traffic and latency). During a queue change the handover
+        decides what is taken (every frame of both queues, once)."""
+        if not self._sensor_received:
+            self._take_waiting_sensor()
+        hand = self._handover
+        if hand is not None:
+            taken = hand.take((cdr, info), sub is hand.new)
+            if hand.over:
+                self._handover = None
+        else:
+            taken = [(cdr, info)] + list(take_queued(sub, Image, DRAIN))
+        self._centroid_taken(taken)
+
+    def _centroid_taken(self, taken) -> None:
+        """Check, centroid and publish ``[(cdr, info)]`` taken from the frame queue."""
+        batch = [self._accept(cdr) for cdr, _ in taken]
         self._centroid_and_publish([b for b in batch if b is not None])
 
     def _on_shm_frames(self, frames, lost: int):

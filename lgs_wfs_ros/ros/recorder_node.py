@@ -42,6 +42,7 @@ from ..bags.portable import STRING, portable_cdr
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from ..transport import TRANSPORTS, frames as frame_transport, shm
+from .handover import Handover, sequence
 from .spinning import run_node, take_queued
 from . import health, parameters, priority, qos
 
@@ -159,6 +160,7 @@ class RecorderNode(Node):
         self.budget_reached = False
         self._linger_timer = None
         self._subs = {}
+        self._handovers = {}     # frame topic -> its queue change under way (handover.py)
         self.sensors: dict[str, Sensor] = {}      # namespace -> last sensor description
         self._selection_version = 0
         self._cutters = {}       # frame topic -> [version, sensor, Cutter | None, reason, announced]
@@ -256,26 +258,36 @@ class RecorderNode(Node):
         kind = topic.rsplit("/", 1)[-1]
 
         def callback(cdr, info, topic=topic, kind=kind, msg_type=MSG_CLASSES[type_name]):
-            self._on_message(topic, kind, cdr, info)
-            # what else is queued, without the executor's ~0.3 ms per message
-            for cdr, info in take_queued(self._subs[topic], msg_type, RECORDER_DRAIN):
+            hand = self._handovers.get(topic)
+            if hand is not None:        # a queue change: every message of both queues, once
+                taken = hand.take((cdr, info), sub is hand.new)
+                if hand.over:
+                    del self._handovers[topic]
+            else:                       # what else is queued, without the executor's ~0.3 ms
+                taken = [(cdr, info)] + list(take_queued(sub, msg_type, RECORDER_DRAIN))
+            for cdr, info in taken:
                 self._on_message(topic, kind, cdr, info)
 
-        self._subs[topic] = self.create_subscription(MSG_CLASSES[type_name], topic, callback,
-                                                     profile, raw=True)
+        sub = self.create_subscription(MSG_CLASSES[type_name], topic, callback, profile,
+                                       raw=True)
+        self._subs[topic] = sub
 
     def _resize_frame_queue(self, ns: str, sensor: Sensor) -> None:
         """Give ``ns``'s frame subscription the queue its sensor needs (``qos.frame_qos``:
-        0.14 s of frames), taking what the old one holds first."""
+        0.14 s of frames). The old subscription is handed over, not dropped
+        (:class:`handover.Handover`): no frame it holds or that is sent meanwhile is lost."""
         topic = ns + "/frame"
         old = self._subs.get(topic)
         profile = qos.frame_qos(sensor)
         if old is None or old.qos_profile.depth == profile.depth:     # None: shm frames
             return
-        for cdr, info in take_queued(old, Image, profile.depth + old.qos_profile.depth):
-            self._on_message(topic, "frame", cdr, info)
-        self.destroy_subscription(old)
         self._create_subscription(topic, qos.TYPES["frame"], profile)
+        last = self._handovers.get(topic)
+        self._handovers[topic] = Handover(self, old, self._subs[topic], Image)
+        if last is not None:             # re-sized again before the last change ended
+            for cdr, info in last.finish_old():
+                self._on_message(topic, "frame", cdr, info)
+            self._handovers[topic].seen |= last.seen
         self.get_logger().info(f"{topic}: frame queue resized to {profile.depth} for its sensor")
 
     def _count_gap(self, topic, info) -> None:
@@ -283,7 +295,7 @@ class RecorderNode(Node):
         publisher's sequence numbers (a KEEP_LAST queue overwritten while the recorder
         stalled, or a writer gone before delivering). Counted per topic, for one publisher
         per topic (the contract's graphs); a sequence going back (a new publisher) restarts."""
-        seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        seq = sequence(info)
         if not seq:
             return
         last = self._sequence.get(topic)

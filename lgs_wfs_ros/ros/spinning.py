@@ -115,9 +115,9 @@ def flush(node, timeout_s: float = FLUSH_S) -> bool:
 DRAIN = 16   # messages taken per executor callback at most (other callbacks wait that long)
 
 
-def take_queued(sub, msg_type, limit: int):
-    """Yield up to ``limit`` (message, info) already queued on a raw subscription, taken
-    without the executor (rclpy's executor costs ~0.3 ms of Python per message); stops at the
+def take_queued(sub, msg_type, limit: int, raw: bool = True):
+    """Yield up to ``limit`` (message, info) already queued on a subscription (serialized
+    bytes when ``raw``, else a ``msg_type`` instance), taken without the executor (rclpy's executor costs ~0.3 ms of Python per message); stops at the
     first empty take or if the subscription is gone.
 
     ``sub.handle.take_message`` is rclpy's internal handle API: Jazzy's rclpy has no public
@@ -129,7 +129,7 @@ def take_queued(sub, msg_type, limit: int):
     for _ in range(limit):
         try:
             with sub.handle:
-                taken = sub.handle.take_message(msg_type, True)
+                taken = sub.handle.take_message(msg_type, raw)
         except Exception:   # destroyed (InvalidHandle) or the context is shutting down
             return
         if taken is None:
