@@ -379,7 +379,8 @@ def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
 
 def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts is
-    the inline mode's, refitted from the same frames."""
+    the inline mode's, refitted from the same frames, computed in the refit's thread (not on
+    the install frame) and cached read-only."""
     s = SMALL.replace(detector="polar")
     n = geometry.layout(s).n_valid
     _, _, sm = true_spots(s, "high")
@@ -391,8 +392,14 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     live.centroid(frames[0])
     live.centroid(frames[1])
     live.pupil.wait()
+
+    def no_render():
+        raise AssertionError("the reference was rendered on the frame path")
+    live.pupil.reference_image = no_render           # the thread computed the bias already
     got = live.centroid(frames[2])
+    del live.pupil.reference_image
     assert live.pupil.fits == 1 and np.abs(live._bias - prior).max() > 0.03
+    assert live.pupil.cog_bias() is live._bias and not live._bias.flags.writeable
     np.testing.assert_array_equal(live._bias, inline._bias)
     np.testing.assert_array_equal(got, want[2])
     live.pupil.wait()

@@ -153,6 +153,7 @@ class PupilCalibration:
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
+        self._bias = None        # (version, cog_bias)
 
     def _prior_light(self, fwhm_m: float) -> np.ndarray:
         """Light per node of a Gaussian layer whose harmonic altitude is h_ref."""
@@ -320,10 +321,14 @@ class PupilCalibration:
 
     def _work(self, clone, snap):
         clone._fit(snap, snap[5])
+        payload = None
         if self.prepare is not None:                         # it renders what it needs
-            return clone, self.prepare(clone)
-        clone.reference()                                    # rendered here, not on a frame
-        return clone, None
+            payload = self.prepare(clone)
+        else:
+            clone.reference()                                # rendered here, not on a frame
+        if self.prepare is None or self.altitude_s > 0:      # the CoG bias, the tracker's
+            clone.cog_bias()
+        return clone, payload
 
     def _poll(self) -> bool:
         """Install a finished background refit (fit state and ``payload``); True if so."""
@@ -546,7 +551,10 @@ class PupilCalibration:
 
     def cog_bias(self) -> np.ndarray:
         """``(n, 2)`` CoG of each reference, px, block axes: a plain CoG's reading of a spot
-        at the true centre, to subtract."""
+        at the true centre, to subtract (cached per refit, read-only; a background refit
+        computes it off the frame path)."""
+        if self._bias is not None and self._bias[0] == self.version:
+            return self._bias[1]
         img = self.reference_image()
         p = self.sensor.pixels
         c = (p - 1) / 2
@@ -555,7 +563,10 @@ class PupilCalibration:
         tot = flat.sum(axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             out = np.stack([flat @ (x.ravel() - c), flat @ (y.ravel() - c)], axis=1) / tot[:, None]
-        return np.where(np.isfinite(out), out, 0.0)
+        out = np.where(np.isfinite(out), out, 0.0)
+        out.flags.writeable = False
+        self._bias = (self.version, out)
+        return out
 
     def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy, flux)``: the reference in counts (the observed mean flux of
@@ -591,8 +602,9 @@ PULL_TOL_PX = 1e-3
 FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
-_FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs", "blur_px",
-              "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough", "_spread")
+_FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
+              "_bias", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough",
+              "_spread")
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.3, "pupil_stride": 1,
