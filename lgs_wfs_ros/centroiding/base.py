@@ -31,9 +31,12 @@ class Centroider:
         sensor: the :class:`Sensor`.
         layout: its :class:`geometry.Layout`.
         options: the options dict, as validated (JSON-able).
+        pupil: the :class:`.pupil.PupilCalibration` an estimator calibrates from, or None.
     """
 
     name = "base"
+    pupil = None          # set by the estimators that use a pupil calibration
+    _altitude = None      # their AltitudeTracker, made at the first frame that needs it
 
     def __init__(self, sensor: Sensor, **options):
         if not isinstance(sensor, Sensor):
@@ -162,13 +165,12 @@ class Centroider:
         drift since its last refit (:class:`.altitude.AltitudeTracker`)."""
         out = np.asarray(self.to_detector(out), dtype=np.float64)
         out[~ok] = np.nan
-        pupil = self.__dict__.get("pupil")
+        pupil = self.pupil
         if pupil is not None and pupil.altitude_s > 0 and out.ndim == 2:
-            tracker = self.__dict__.get("_altitude")
-            if tracker is None:
-                tracker = self._altitude = AltitudeTracker(
+            if self._altitude is None:
+                self._altitude = AltitudeTracker(
                     self.layout, pupil.altitude_s, self.sensor.frame_rate_hz, self.to_detector)
-            out = tracker.apply(out, ok, pupil)
+            out = self._altitude.apply(out, ok, pupil)
         return out
 
     def prepare(self, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
