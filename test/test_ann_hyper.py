@@ -172,6 +172,8 @@ def test_hypertrain_experiment_cli_caches_data_and_exports(tmp_path, monkeypatch
     np.testing.assert_array_equal(chunk.y[48:], second.y)
     record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert record["samples"] == 96 and record["check"]["n"] == 150
+    assert record["spec"]["k"] == 4 and record["recipe"]["sizes"] == [4, 6, 1]   # train's schema
+    assert set(record) >= {"recipe_line", "profiles", "photons_range", "epochs_run", "weights"}
     assert record["check_onnx_mae_px"] == pytest.approx(record["check"]["mean_err_px"], abs=1e-4)
     assert out.with_suffix(".pt").exists()
     stamp = (data / "train_000.npz").stat().st_mtime_ns

@@ -407,6 +407,25 @@ def cache_data(data_dir, chunks: int, seed: int = 16, log=print) -> None:
         log(f"chunk {c}: {time.perf_counter() - t0:.0f} s")
 
 
+def experiment_record(spec: HyperSpec, samples: int, net, history: list, check_mae_px: float) -> dict:
+    """The training record of a :func:`main` variant: :func:`.margtrain.record`'s, the same
+    as ``lgs-wfs train`` writes, for a recipe ``ann_hyper`` with the variant's sizes and
+    settings (``spec`` holds what a recipe does not: the hyper widths, templates, head
+    scale); the data came from cached chunks (generate_seconds 0)."""
+    from dataclasses import replace
+
+    from .recipes import RECIPES
+    rec = replace(RECIPES["ann_hyper"], name="ann_hyper_experiment", filters=spec.k,
+                  sizes=(spec.k, *spec.trunk, 1), epochs=spec.epochs, batch=spec.batch,
+                  lr=spec.lr, seed=spec.seed, samples=samples, shipped=False)
+    weights = n_weights(net)
+    return margtrain.record(
+        rec, samples, spec.seed, 0.0, history, min(h["monitor_mae_px"] for h in history),
+        check_mae_px, "fresh spots of the training prior (margtrain's check set, cached)",
+        spec=asdict(spec), weights=weights,
+        parameters=int(sum(v for k, v in weights.items() if k != "filters_per_subap")))
+
+
 def main(argv=None):
     import argparse
     import glob
@@ -443,12 +462,7 @@ def main(argv=None):
     check = load_pairs(f"{a.data}/check.npz")
     print(f"{len(data.y)} spots; spec {asdict(spec)}", flush=True)
     net, hist = fit(spec, data, monitor, log=lambda s: print(s, flush=True))
-    check_mae = _mae(net, _tensors(check))
-    counts = n_weights(net)
-    training = {"spec": asdict(spec), "samples": int(len(data.y)), "weights": counts,
-                "final_monitor_mae_px": min(h["monitor_mae_px"] for h in hist),
-                "check": {"mean_err_px": check_mae, "n": margtrain.CHECK_N, "seed": margtrain.CHECK_SEED},
-                "fit_seconds": hist[-1]["seconds"]}
+    training = experiment_record(spec, int(len(data.y)), net, hist, _mae(net, _tensors(check)))
     model = build_model(net, spec, {"lgs_wfs.training": training,
                                     "lgs_wfs.domain": margtrain.domain(refdata.MARGINAL_SPEC)})
     out = Path(a.out)
