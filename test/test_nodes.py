@@ -577,3 +577,48 @@ def test_recorder_frame_queue_change_loses_and_repeats_no_frame(ros, tmp_path):
     stamps, _ = bags.BagReader(out).images("/wfs/frame")
     assert list(stamps) == [1000 + k for k in range(60)]
     assert rec.gaps == {} and rec.frames_seen == 60 and not rec._handovers
+    assert rec._subs["/wfs/frame"].event_handlers == []      # replaceable (rclpy#1284)
+
+
+def test_repeated_frame_queue_changes_keep_a_multithreaded_executor_spinning(ros):
+    """rclpy's executors add a destroyed subscription's event handlers to their wait set
+    (ros2/rclpy#1284) and a MultiThreadedExecutor's spin dies of it: the frame queues a node
+    replaces have none, so sensor changes back and forth, each destroying a queue while
+    frames flow, leave the executor spinning and the frames centroided."""
+    from std_msgs.msg import String
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    fast = SMALL.replace(frame_rate_hz=6000.0)               # another queue depth, same frames
+    node = ros.add(CentroiderNode(context=ros.context))
+    rig = Rig(ros)
+    assert wait_for(lambda: node.sensor == SMALL, timeout=10)
+    assert node._frame_sub.event_handlers == []
+    frame, stamp = small_frame(SMALL, 5), 10**9
+    for k in range(40):
+        sensor = fast if k % 2 == 0 else SMALL
+        rig.sensor_pub.publish(String(data=sensor.to_json(seed=0)))
+        assert wait_for(lambda: node.sensor == sensor, timeout=10)
+        for _ in range(3):
+            stamp += 1000
+            rig.send(frame, stamp)
+        assert wait_for(lambda: stamp in rig.slopes or not ros._thread.is_alive(), timeout=10)
+        assert ros._thread.is_alive(), f"the executor died at change {k}"
+    assert node._frame_sub.event_handlers == []
+
+
+def test_a_frame_publisher_the_node_cannot_hear_is_warned_of_once(ros):
+    """The frame queues have no incompatible-QoS handler (see above), so the centroider
+    checks the frame publishers itself: a best-effort one (a camera driver's sensor-data
+    QoS) is named once, with the reason."""
+    from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+    node = ros.add(CentroiderNode(context=ros.context))
+    Rig(ros)                                                     # a reliable one: fine
+    assert wait_for(lambda: node.sensor == SMALL, timeout=10)
+    camera = ros.add(Node("camera", namespace="wfs", context=ros.context))
+    camera.create_publisher(Image, "/wfs/frame", qos_profile_sensor_data)
+    assert wait_for(lambda: node.incompatible_frame_publishers, timeout=10)
+    time.sleep(1.5)                                              # checked again: not repeated
+    assert node.incompatible_frame_publishers == {
+        "/wfs/camera (it offers best effort, this node needs reliable)"}

@@ -134,6 +134,8 @@ class CentroiderNode(Node):
         self._recent = collections.OrderedDict()     # stamp -> slopes grid, while measured
         self._next_error = 0.0
         self.create_timer(1.0, self._follow_error_subscribers)
+        self.incompatible_frame_publishers: set[str] = set()     # warned of, once each
+        self.create_timer(1.0, self._check_frame_publishers)
         self._frame_sub = self._inlet = None
         self._handover = None            # a frame queue change under way (handover.py)
         self._sensor_id = shm.sensor_id(self.sensor)
@@ -251,7 +253,8 @@ class CentroiderNode(Node):
         if old is not None and old.qos_profile.depth == profile.depth:
             return
         new = self.create_subscription(
-            Image, "frame", lambda cdr, info: self._on_frame(cdr, info, new), profile, raw=True)
+            Image, "frame", lambda cdr, info: self._on_frame(cdr, info, new), profile, raw=True,
+            event_callbacks=qos.replaceable())
         self._frame_sub = new
         if old is None:
             return
@@ -384,6 +387,16 @@ class CentroiderNode(Node):
                     self._recent.popitem(last=False)
                 self._publish_error()
 
+    def _check_frame_publishers(self):
+        """Warn once of each frame publisher this node cannot hear (its subscription has no
+        incompatible-QoS handler: :func:`.qos.replaceable`)."""
+        if self._frame_sub is None:
+            return
+        for who in qos.incompatible(self, self._frame_sub.topic_name, self._frame_sub.qos_profile):
+            if who not in self.incompatible_frame_publishers:
+                self.incompatible_frame_publishers.add(who)
+                self.get_logger().warning(f"no frames from {who} on {self._frame_sub.topic_name}")
+
     # -- error against the truth, for plots (only while slope_error has subscribers) ------
     def _follow_error_subscribers(self):
         """Subscribe to true_slopes while slope_error has subscribers (a 700 Hz callback
@@ -392,7 +405,8 @@ class CentroiderNode(Node):
                 and self._error_pub.get_subscription_count() > 0)
         if want and self._truth_sub is None:
             self._truth_sub = self.create_subscription(Image, "true_slopes", self._on_truth,
-                                                       qos.SLOPES, raw=True)
+                                                       qos.SLOPES, raw=True,
+                                                       event_callbacks=qos.replaceable())
         elif not want and self._truth_sub is not None:
             self.destroy_subscription(self._truth_sub)
             self._truth_sub, self._truth = None, None

@@ -20,6 +20,7 @@ What may drop and what may not:
 import math
 
 import numpy as np
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 
 FRAME_QUEUE_S = 0.14             # a frame queue holds this long at the frame rate,
@@ -77,3 +78,32 @@ def describe(qos: QoSProfile) -> dict:
     return {"history": qos.history.name.lower(), "depth": qos.depth,
             "reliability": qos.reliability.name.lower(),
             "durability": qos.durability.name.lower()}
+
+
+def replaceable() -> SubscriptionEventCallbacks:
+    """Event callbacks for a subscription that a node destroys while its executor spins (a
+    re-sized frame queue, the truth while nobody plots): none. rclpy's executors (Jazzy) add
+    every event handler they gathered to the wait set even when its destruction was requested
+    meanwhile (ros2/rclpy#1284): that raises ``InvalidHandle`` and ends a
+    MultiThreadedExecutor's spin (21 create/destroy cycles from another thread here; none in
+    10,630 without handlers). The handler this drops is rclpy's incompatible-QoS warning:
+    :func:`incompatible` gives it back."""
+    return SubscriptionEventCallbacks(use_default_callbacks=False)
+
+
+def incompatible(node, topic: str, profile: QoSProfile) -> list[str]:
+    """``"namespace/node (why)"`` for each publisher of ``topic`` (a resolved name) that a
+    subscription with ``profile`` cannot hear: best effort against reliable, volatile
+    against transient local."""
+    out = []
+    for info in node.get_publishers_info_by_topic(topic):
+        offered, why = info.qos_profile, []
+        if (profile.reliability == ReliabilityPolicy.RELIABLE
+                and offered.reliability == ReliabilityPolicy.BEST_EFFORT):
+            why.append("it offers best effort, this node needs reliable")
+        if (profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                and offered.durability == DurabilityPolicy.VOLATILE):
+            why.append("it offers volatile, this node needs transient local")
+        if why:
+            out.append(f"{info.node_namespace.rstrip('/')}/{info.node_name} ({'; '.join(why)})")
+    return out

@@ -171,6 +171,7 @@ class RecorderNode(Node):
         for topic in self.get_parameter("topics").value:
             topic = self.resolve_topic_name(topic)
             self._subscribe(topic, qos.TYPES.get(topic.rsplit("/", 1)[-1]))
+        self.incompatible_frame_publishers: set[str] = set()     # warned of, once each
         self._discover_timer = self.create_timer(1.0, self._discover)
         self._discover()
         nice = self.get_parameter("nice").value
@@ -222,12 +223,24 @@ class RecorderNode(Node):
                             self._subscribe(_namespace(topic) + "/sensor", qos.TYPES["sensor"])
 
     def _discover(self):
+        self._check_frame_publishers()
         if not self.get_parameter("discover").value or self.closing:
             return
         for topic, types in self.get_topic_names_and_types():
             kind = topic.rsplit("/", 1)[-1]
             if kind in qos.TYPES and qos.TYPES[kind] in types and topic not in self._subs:
                 self._subscribe(topic, qos.TYPES[kind])
+
+    def _check_frame_publishers(self):
+        """Warn once of each frame publisher a frame subscription cannot hear (those have no
+        incompatible-QoS handler: :func:`.qos.replaceable`)."""
+        for topic, sub in list(self._subs.items()):
+            if sub is None or not topic.endswith("/frame"):
+                continue
+            for who in qos.incompatible(self, sub.topic_name, sub.qos_profile):
+                if who not in self.incompatible_frame_publishers:
+                    self.incompatible_frame_publishers.add(who)
+                    self.get_logger().warning(f"not recording {topic} from {who}")
 
     def _subscribe(self, topic: str, type_name: str | None):
         if type_name is None or topic in self._subs:
@@ -268,8 +281,9 @@ class RecorderNode(Node):
             for cdr, info in taken:
                 self._on_message(topic, kind, cdr, info)
 
+        events = qos.replaceable() if kind == "frame" else None     # re-sized: handover.py
         sub = self.create_subscription(MSG_CLASSES[type_name], topic, callback, profile,
-                                       raw=True)
+                                       raw=True, event_callbacks=events)
         self._subs[topic] = sub
 
     def _resize_frame_queue(self, ns: str, sensor: Sensor) -> None:
