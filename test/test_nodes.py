@@ -622,3 +622,22 @@ def test_a_frame_publisher_the_node_cannot_hear_is_warned_of_once(ros):
     time.sleep(1.5)                                              # checked again: not repeated
     assert node.incompatible_frame_publishers == {
         "/wfs/camera (it offers best effort, this node needs reliable)"}
+
+
+def test_the_recorder_names_a_frame_publisher_it_cannot_hear(ros, tmp_path):
+    """The recorder's frame queues have no incompatible-QoS handler either: a best-effort
+    frame publisher is named once."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+    from lgs_wfs_ros.ros.recorder_node import RecorderNode
+    rec = ros.add(RecorderNode(context=ros.context, namespace="wfs", parameter_overrides=[
+        Parameter("output", value=str(tmp_path / "rec.mcap")), Parameter("frames", value=5),
+        Parameter("topics", value=["/wfs/frame"])]))
+    camera = ros.add(Node("camera", namespace="wfs", context=ros.context))
+    camera.create_publisher(Image, "/wfs/frame", qos_profile_sensor_data)
+    assert wait_for(lambda: rec.incompatible_frame_publishers, timeout=10)
+    time.sleep(1.5)
+    assert rec.incompatible_frame_publishers == {
+        "/wfs/camera (it offers best effort, this node needs reliable)"}

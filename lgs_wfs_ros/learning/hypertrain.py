@@ -344,12 +344,8 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
     del data
     check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
-    weights = n_weights(net)
-    training = margtrain.record(
-        rec, samples, seed, gen_s, hist, min(h["monitor_mae_px"] for h in hist),
-        _mae(net, _tensors(check)), "fresh spots of the training prior (margtrain's check set)",
-        spec=asdict(spec), parameters=int(sum(v for k, v in weights.items() if k != "filters_per_subap")),
-        weights=weights)
+    training = record(rec, spec, samples, gen_s, net, hist, _mae(net, _tensors(check)),
+                      "fresh spots of the training prior (margtrain's check set)")
     prior = refdata.MARGINAL_SPEC
     model = build_model(net, spec, {"lgs_wfs.training": training,
                                     "lgs_wfs.domain": margtrain.domain(prior)}, rec.name)
@@ -407,23 +403,30 @@ def cache_data(data_dir, chunks: int, seed: int = 16, log=print) -> None:
         log(f"chunk {c}: {time.perf_counter() - t0:.0f} s")
 
 
+def record(rec, spec: HyperSpec, samples: int, generate_s: float, net, history: list,
+           check_mae_px: float, check_what: str) -> dict:
+    """The training record (:func:`.margtrain.record`'s schema) of ``net`` trained by
+    ``spec`` for recipe ``rec``, with the spec (what a recipe does not hold: the hyper
+    widths, templates, head scale) and the weight counts beside it."""
+    weights = n_weights(net)
+    return margtrain.record(
+        rec, samples, spec.seed, generate_s, history, min(h["monitor_mae_px"] for h in history),
+        check_mae_px, check_what, spec=asdict(spec), weights=weights,
+        parameters=int(sum(v for k, v in weights.items() if k != "filters_per_subap")))
+
+
 def experiment_record(spec: HyperSpec, samples: int, net, history: list, check_mae_px: float) -> dict:
-    """The training record of a :func:`main` variant: :func:`.margtrain.record`'s, the same
-    as ``lgs-wfs train`` writes, for a recipe ``ann_hyper`` with the variant's sizes and
-    settings (``spec`` holds what a recipe does not: the hyper widths, templates, head
-    scale); the data came from cached chunks (generate_seconds 0)."""
+    """The training record of a :func:`main` variant: :func:`record` for a recipe
+    ``ann_hyper`` with the variant's sizes and settings, the same schema ``lgs-wfs train``
+    writes; the data came from cached chunks (generate_seconds 0)."""
     from dataclasses import replace
 
     from .recipes import RECIPES
     rec = replace(RECIPES["ann_hyper"], name="ann_hyper_experiment", filters=spec.k,
                   sizes=(spec.k, *spec.trunk, 1), epochs=spec.epochs, batch=spec.batch,
                   lr=spec.lr, seed=spec.seed, samples=samples, shipped=False)
-    weights = n_weights(net)
-    return margtrain.record(
-        rec, samples, spec.seed, 0.0, history, min(h["monitor_mae_px"] for h in history),
-        check_mae_px, "fresh spots of the training prior (margtrain's check set, cached)",
-        spec=asdict(spec), weights=weights,
-        parameters=int(sum(v for k, v in weights.items() if k != "filters_per_subap")))
+    return record(rec, spec, samples, 0.0, net, history, check_mae_px,
+                  "fresh spots of the training prior (margtrain's check set, cached)")
 
 
 def main(argv=None):

@@ -390,12 +390,10 @@ class CentroiderNode(Node):
     def _check_frame_publishers(self):
         """Warn once of each frame publisher this node cannot hear (its subscription has no
         incompatible-QoS handler: :func:`.qos.replaceable`)."""
-        if self._frame_sub is None:
-            return
-        for who in qos.incompatible(self, self._frame_sub.topic_name, self._frame_sub.qos_profile):
-            if who not in self.incompatible_frame_publishers:
-                self.incompatible_frame_publishers.add(who)
-                self.get_logger().warning(f"no frames from {who} on {self._frame_sub.topic_name}")
+        sub = self._frame_sub
+        if sub is not None:
+            for who in qos.new_incompatible(self, sub, self.incompatible_frame_publishers):
+                self.get_logger().warning(f"no frames from {who} on {sub.topic_name}")
 
     # -- error against the truth, for plots (only while slope_error has subscribers) ------
     def _follow_error_subscribers(self):

@@ -91,6 +91,14 @@ def replaceable() -> SubscriptionEventCallbacks:
     return SubscriptionEventCallbacks(use_default_callbacks=False)
 
 
+def new_incompatible(node, sub, warned: set) -> list[str]:
+    """:func:`incompatible` publishers of subscription ``sub`` not yet in ``warned`` (added
+    to it): what a node warns of, once each."""
+    new = [who for who in incompatible(node, sub.topic_name, sub.qos_profile) if who not in warned]
+    warned.update(new)
+    return new
+
+
 def incompatible(node, topic: str, profile: QoSProfile) -> list[str]:
     """``"namespace/node (why)"`` for each publisher of ``topic`` (a resolved name) that a
     subscription with ``profile`` cannot hear: best effort against reliable, volatile

@@ -235,11 +235,8 @@ class RecorderNode(Node):
         """Warn once of each frame publisher a frame subscription cannot hear (those have no
         incompatible-QoS handler: :func:`.qos.replaceable`)."""
         for topic, sub in list(self._subs.items()):
-            if sub is None or not topic.endswith("/frame"):
-                continue
-            for who in qos.incompatible(self, sub.topic_name, sub.qos_profile):
-                if who not in self.incompatible_frame_publishers:
-                    self.incompatible_frame_publishers.add(who)
+            if sub is not None and topic.endswith("/frame"):
+                for who in qos.new_incompatible(self, sub, self.incompatible_frame_publishers):
                     self.get_logger().warning(f"not recording {topic} from {who}")
 
     def _subscribe(self, topic: str, type_name: str | None):
