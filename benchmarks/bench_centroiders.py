@@ -139,8 +139,10 @@ def run(quick: bool = False) -> list[dict]:
                                {"pupil_period": 1000000}),
                               ("ann ann_marg (polar detector, per-frame part)", "ann",
                                {"model": "ann_marg", "pupil_period": 1000000}),
-                              ("ann ann_hyper (default polar model, per-frame part)", "ann",
-                               {"model": "ann_hyper", "pupil_period": 1000000})):
+                              ("ann ann_hyper (per-frame part)", "ann",
+                               {"model": "ann_hyper", "pupil_period": 1000000}),
+                              ("ann ann_conv (default polar model, per-frame part)", "ann",
+                               {"model": "ann_conv", "pupil_period": 1000000})):
         c = make_centroider(name, polar, **opts)
         timings[label] = add(label, _time(lambda: c.centroid(pframe), reps),
                              "" if name == "cog" else "< 1 ms",

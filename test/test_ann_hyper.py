@@ -93,27 +93,75 @@ def test_split_hyper_parts_compute_the_whole_graph(tmp_path):
     np.testing.assert_allclose(part, whole, rtol=1e-6)
 
 
+@pytest.mark.parametrize("templates", [(), (-0.5, 0.5)])
+def test_compiled_first_layer_gives_the_whole_graphs_shifts(templates, tmp_path):
+    """A model that names its trunk (``lgs_wfs.hyper_trunk``, written by hypertrain's export)
+    runs its filters in ``kernels.hyper_contract`` and the rest in onnxruntime: the same
+    slopes as the whole frame graph, through refits, NaN frames included."""
+    torch = pytest.importorskip("torch")
+    from lgs_wfs_ros.centroiding import kernels
+    from lgs_wfs_ros.learning import export, hypertrain
+    spec = hypertrain.HyperSpec(k=4, conv=(8,), trunk=(6,), templates=templates, head_scale=1.0)
+    net = hypertrain._torch_module(spec)
+    with torch.no_grad():
+        for prm in net.parameters():
+            prm.normal_(0.0, 0.3)
+    path = export.save(hypertrain.build_model(net, spec, {"lgs_wfs.domain": DOMAIN}), tmp_path / "c.onnx")
+    sensor = Sensor(detector="polar", photons=300.0)
+    pup = {"pupil_period": 3, "pupil_time_constant_s": 0.02}
+    fast = options.build("ann", sensor, {"model": str(path), **pup})
+    whole = options.build("ann", sensor, {"model": str(path), **pup})
+    whole._trunk = None
+    assert fast._trunk is not None
+    fr = frames(sensor, 7)
+    bad = fr[4].astype(np.float32)
+    bad[:20] = np.nan
+    for f in [*fr[:4], bad, *fr[4:]]:
+        a, b = fast.centroid(f), whole.centroid(f)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+        assert np.isfinite(a).mean() > 0.9
+    assert fast.describe()["pupil_calibration"]["fits"] >= 2
+    # the kernel and its numpy form agree, NaN rows stay NaN
+    rng = np.random.default_rng(3)
+    x = rng.poisson(40, (5, P)).astype(np.float32)
+    x[1] = 0.0
+    x[2, 3] = np.nan
+    f, c = rng.normal(size=(5, 3, P)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
+    z, safe = kernels.hyper_contract(x, f, c)
+    tot = x.sum(axis=1, keepdims=True)
+    want = np.einsum("nkp,np->nk", f, x) / np.maximum(tot, 1.0) + c
+    np.testing.assert_allclose(z[[0, 1, 3, 4]], want[[0, 1, 3, 4]], rtol=1e-5, atol=1e-6)
+    assert np.isnan(z[2]).all() and np.isnan(safe[2, 0]) and safe[1, 0] == 1.0
+
+
 def test_hyper_metadata_is_checked(tmp_path):
     with pytest.raises(ValueError, match="hyper"):
         ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper": "true"})
     with pytest.raises(ValueError, match="true or false"):
         ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper": '"yes"'})
     md = ann_mod.read_metadata({"lgs_wfs.pixels": "16"})
-    assert md["hyper"] is False
+    assert md["hyper"] is False and md["hyper_trunk"] is None
+    with pytest.raises(ValueError, match="hyper_trunk"):
+        ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper_trunk": '{"z": "zc"}'})
 
 
-def test_hypertrain_export_computes_the_trained_network():
+@pytest.mark.parametrize("conv", [(), (8, 8)])
+def test_hypertrain_export_computes_the_trained_network(conv):
     """The exported graph (refit and frame parts, template rows and their N^a gains) equals
-    the torch module on real polar spots."""
+    the torch module on real polar spots, with the dense and the convolutional hyper network."""
     torch = pytest.importorskip("torch")
     from lgs_wfs_ros.learning import hypertrain
-    spec = hypertrain.HyperSpec(k=4, hyper=(8,), trunk=(6,), templates=(-0.5, 0.5), head_scale=1.0)
+    spec = hypertrain.HyperSpec(k=4, hyper=(8,), conv=conv, trunk=(6,), templates=(-0.5, 0.5),
+                                head_scale=1.0)
     net = hypertrain._torch_module(spec)
     with torch.no_grad():                    # non-trivial gains and scales
         net.tgain.copy_(torch.tensor([0.3, -0.2]))
         net.tscale.copy_(torch.tensor([1.5, 0.7]))
         net.tbias.copy_(torch.tensor([0.1, -0.1]))
         net.wn.copy_(torch.linspace(-1, 1, 6))
+        if conv:                             # gains and biases from the pooled channels
+            net.pool.weight.normal_(0.0, 0.5)
+            net.pool.bias.normal_(0.0, 0.5)
     pairs = refdata.marginal_pairs(np.random.default_rng(4), 32)
     u, r, lf, _ = hypertrain._tensors(pairs)
     with torch.no_grad():
@@ -122,7 +170,39 @@ def test_hypertrain_export_computes_the_trained_network():
     np.testing.assert_allclose(margtrain.predict(model, pairs), want, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("name", ["ann_marg", "ann_hyper"])
+def test_conv_hyper_network_reads_the_spot_wherever_it_sits():
+    """The convolutional hyper network's filters move with the reference and its biases do
+    not: a spot and its reference moved together by whole pixels (away from the field's
+    edges) give the same shift. The dense network's do not (its map knows the pixels)."""
+    torch = pytest.importorskip("torch")
+    from lgs_wfs_ros.learning import hypertrain
+    pairs = refdata.marginal_pairs(np.random.default_rng(5), 64)
+    # a compact spot on pixels 6-9, then the same moved by -2 and +2 px: the filters' reach
+    # (3 px) and the pooled channels' (2 px) never see the zero padding beyond the field
+    r = np.zeros((64, P), np.float32)
+    r[:, 6:10] = pairs.refs[:, 6:10] + 1e-3
+    r /= r.sum(axis=1, keepdims=True)
+    m = np.zeros_like(r)
+    m[:, 6:10] = pairs.marg[:, 6:10] + 1.0
+    lf = torch.zeros(64, 1)
+
+    def out(net, shift):
+        u = torch.from_numpy(np.roll(m / m.sum(axis=1, keepdims=True), shift, axis=1))
+        with torch.no_grad():
+            return net(u, torch.from_numpy(np.roll(r, shift, axis=1)), lf).numpy()
+    spread = {}
+    for conv in ((), (8, 8)):
+        net = hypertrain._torch_module(hypertrain.HyperSpec(k=4, hyper=(8,), conv=conv, trunk=(6,),
+                                                            kernel=3, head_scale=1.0))
+        with torch.no_grad():
+            for prm in net.parameters():
+                prm.normal_(0.0, 0.3)
+        spread[conv] = max(np.abs(out(net, s) - out(net, 0)).max() for s in (-2, 2))
+    assert spread[(8, 8)] < 1e-5
+    assert spread[()] > 1e-2
+
+
+@pytest.mark.parametrize("name", ["ann_marg", "ann_hyper", "ann_conv"])
 def test_lgs_wfs_train_writes_the_marginal_models_record(name, tmp_path):
     """``lgs-wfs train`` of either marginal recipe (one training record built for both by
     ``margtrain.record``): the model carries its recipe, data, prior and check error, the
@@ -141,7 +221,9 @@ def test_lgs_wfs_train_writes_the_marginal_models_record(name, tmp_path):
     pairs = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
     along = np.abs(margtrain.predict(path, pairs) - pairs.y).mean()
     assert rec["check"]["mean_err_px"] == pytest.approx(along, rel=1e-3)   # what the model does
-    assert ("spec" in rec) == (name == "ann_hyper")
+    assert ("spec" in rec) == (name != "ann_marg")
+    if name == "ann_conv":                   # the recipe's refit network and loss reach the spec
+        assert rec["spec"]["conv"] == [16, 16] and rec["spec"]["weight_power"] == 1.0
     assert meta["lgs_wfs.domain"] == margtrain.domain(refdata.MARGINAL_SPEC)
     text = (tmp_path / "README.md").read_text()
     assert f"`{name}`" in text and text == card.render(tmp_path)

@@ -159,13 +159,13 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # the default models (ann_hyper polar, ann_ref cartesian) ship with the package, so
+    # the default models (ann_conv polar, ann_ref cartesian) ship with the package, so
     # they resolve by name ...
     from lgs_wfs_ros.centroiding import ann
-    assert ann.DEFAULT_MODELS == {"polar": "ann_hyper", "cartesian": "ann_ref"}
+    assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_ref"}
     for name in ann.DEFAULT_MODELS.values():
         assert resolve_model(name) == ann.model_dirs()[0] / f"{name}.onnx"
-    assert make_centroider("ann", Sensor(detector="polar")).model_name == "ann_hyper"
+    assert make_centroider("ann", Sensor(detector="polar")).model_name == "ann_conv"
     # ... and where no directory holds it, the error says so (both paths always run)
     monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
     with pytest.raises(ValueError, match="'ann_ref' not found"):

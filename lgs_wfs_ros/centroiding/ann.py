@@ -73,9 +73,9 @@ from . import pupil as pupil_cal
 from .base import Centroider, check_options
 
 #: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
-#: reference; on a polar detector ann_hyper (filters its reference sets, on the column sums
-#: along e) is the more accurate
-DEFAULT_MODELS = {"polar": "ann_hyper", "cartesian": "ann_ref"}
+#: reference; on a polar detector ann_conv (filters its reference sets through convolutions,
+#: on the column sums along e) is the more accurate
+DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_ref"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
@@ -159,7 +159,7 @@ def read_metadata(meta_map: dict) -> dict:
           "output_frame": "detector", "conditioning": "none", "conditioning_input": "e",
           "conditioning_frame": "detector",
           "input_name": None, "training": None, "domain": None,
-          "hyper": False, "hyper_outputs": ["filters", "fbias"]}
+          "hyper": False, "hyper_outputs": ["filters", "fbias"], "hyper_trunk": None}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
@@ -189,6 +189,10 @@ def read_metadata(meta_map: dict) -> dict:
     if not (isinstance(md["hyper_outputs"], list) and md["hyper_outputs"]
             and all(isinstance(v, str) for v in md["hyper_outputs"])):
         raise ValueError("ann: metadata lgs_wfs.hyper_outputs must be a list of tensor names")
+    trunk = md["hyper_trunk"]
+    if trunk is not None and not (isinstance(trunk, dict) and set(trunk) == {"z", "total"}
+                                  and all(isinstance(v, str) for v in trunk.values())):
+        raise ValueError("ann: metadata lgs_wfs.hyper_trunk must be {\"z\": name, \"total\": name}")
     return md
 
 
@@ -292,6 +296,40 @@ def split_hyper(model, ref_input: str, outputs) -> tuple:
     return refit, frame
 
 
+def hyper_trunk(frame, names):
+    """The trunk of a hyper model's frame part, or None.
+
+    Args:
+        frame: the frame part (:func:`split_hyper`) of a model whose metadata
+            ``lgs_wfs.hyper_trunk`` names ``{"z": tensor, "total": tensor}``: ``z = filters
+            (marginals / total) + fbias`` and ``total = max(sum marginals, 1)``
+            (:func:`.kernels.hyper_contract` computes both in one pass).
+        names: that metadata, or None (the whole frame part runs in onnxruntime).
+
+    Returns:
+        An onnxruntime session from ``(z, total)`` to the model's outputs, or None.
+
+    Raises:
+        ValueError: the frame part cannot be cut there, or its trunk still reads the
+            marginals or the filters.
+    """
+    if names is None:
+        return None
+    import onnx
+    from onnx.utils import Extractor
+    try:
+        trunk = Extractor(onnx.shape_inference.infer_shapes(frame)).extract_model(
+            [names["z"], names["total"]], [o.name for o in frame.graph.output])
+    except Exception as exc:  # onnx raises assorted types for a graph it cannot cut
+        raise ValueError(f"ann: cannot cut the hyper model's trunk at {names}: {exc}") from exc
+    read = {i for n in trunk.graph.node for i in n.input}
+    outside = [i.name for i in frame.graph.input if i.name in read]
+    if outside:
+        raise ValueError(f"ann: the hyper model's trunk still reads {outside}")
+    trunk.ClearField("metadata_props")
+    return open_session(trunk.SerializeToString())
+
+
 def fold_sum_normalisation(model, input_name: str, width: int):
     """Fold the per-subaperture sum normalisation into the model's first product.
 
@@ -367,7 +405,7 @@ class ANN(Centroider):
 
     Options:
         model: path or name (default: :data:`DEFAULT_MODELS` of the sensor's detector,
-            ``ann_hyper`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
+            ``ann_conv`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.
@@ -390,13 +428,14 @@ class ANN(Centroider):
         self.session = open_session(self.path)
         self.meta = read_metadata(self.session.get_modelmeta().custom_metadata_map)
         md = self.meta
-        self.pupil, self._graph, self._refit = None, None, None
+        self.pupil, self._graph, self._refit, self._trunk = None, None, None, None
         if md["hyper"]:                                  # the reference sets filters once per refit
             import onnx
             refit, frame = split_hyper(onnx.load(str(self.path)), md["conditioning_input"],
                                        md["hyper_outputs"])
             self._refit = open_session(refit.SerializeToString())
             self.session = open_session(frame.SerializeToString())
+            self._trunk = hyper_trunk(frame, md["hyper_trunk"])
         elif md["conditioning"] == "reference":           # the reference enters once per refit
             import onnx
             self._graph, self._ref_w = split_reference(onnx.load(str(self.path)), md["conditioning_input"])
@@ -592,12 +631,18 @@ class ANN(Centroider):
         if refit:
             self.cond = (self.cond[0], self._reference_code())
         x = np.ascontiguousarray(marg[:, 0])
-        feed = {self.input_name: x}
-        if self._refit is not None:
-            feed.update(self.cond[1])
+        if self._trunk is not None:                  # filters in one compiled pass, trunk in onnx
+            f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
+            z, safe = kernels.hyper_contract(x, f, b)
+            names = self.meta["hyper_trunk"]
+            out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
         else:
-            feed[self.cond[0]] = self.cond[1]
-        out = self.session.run(None, feed)[0]
+            feed = {self.input_name: x}
+            if self._refit is not None:
+                feed.update(self.cond[1])
+            else:
+                feed[self.cond[0]] = self.cond[1]
+            out = self.session.run(None, feed)[0]
         if out.shape != (self.n, 1):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 1)}")
         total = marg[:, 1].sum(axis=1, dtype=np.float64)

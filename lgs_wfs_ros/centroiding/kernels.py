@@ -283,6 +283,24 @@ def _block_sums_impl(frame, r0, c0, p, col, dst, acc, b):
     return tot
 
 
+def _hyper_contract_impl(x, filters, fbias, z, safe):
+    # x (n, p) float32 marginals; filters (n, K, p), fbias (n, K) float32; out z (n, K), safe (n, 1)
+    n, k, p = filters.shape
+    for b in range(n):
+        tot = np.float32(0.0)
+        for j in range(p):
+            tot += x[b, j]
+        s = tot if tot > 1.0 else np.float32(1.0)
+        if tot != tot:                       # NaN row: NaN out
+            s = tot
+        safe[b, 0] = s
+        for q in range(k):
+            acc = np.float32(0.0)
+            for j in range(p):
+                acc += filters[b, q, j] * x[b, j]
+            z[b, q] = acc / s + fbias[b, q]
+
+
 def _block_marginals_impl(frame, origins, p, acc, out):
     # out (n, 2, p) float32; acc (n, 2, p) float64 or a 0-row dummy
     col = np.zeros(p, dtype=np.int32)
@@ -542,6 +560,8 @@ if AVAILABLE:
     _block_sums = numba.njit(cache=True, nogil=True, inline="always")(_block_sums_impl)
     _ml_search = numba.njit(cache=True, nogil=True)(_ml_search_impl)
     _block_marginals = numba.njit(cache=True, nogil=True)(_block_marginals_impl)
+    _hyper_contract = numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})(
+        _hyper_contract_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
@@ -657,6 +677,28 @@ def block_marginals(frame: np.ndarray, origins: np.ndarray, p: int,
         out = np.empty((n, 2, p), dtype=np.float32)
     _block_marginals(frame, origins, int(p), np.empty((0, 2, p)) if acc is None else acc, out)
     return out
+
+
+def hyper_contract(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(z (n, K), safe (n, 1))`` float32: each block's marginal ``x (n, p)`` through its
+    own filters, ``z = filters (x / safe) + fbias`` with ``safe = max(sum x, 1)`` (NaN rows
+    stay NaN): the first layer of a hyper network (``learning/hypertrain.py``), one pass
+    instead of onnxruntime's per-block products. ``filters (n, K, p)``, ``fbias (n, K)``."""
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    filters = np.ascontiguousarray(filters, dtype=np.float32)
+    fbias = np.ascontiguousarray(fbias, dtype=np.float32)
+    if filters.shape[0] != x.shape[0] or filters.shape[2] != x.shape[1] or fbias.shape != filters.shape[:2]:
+        raise ValueError(f"hyper_contract: marginals {x.shape}, filters {filters.shape} and "
+                         f"fbias {fbias.shape} do not match")
+    if not AVAILABLE:
+        tot = x.sum(axis=1, keepdims=True)
+        safe = np.where(np.isnan(tot), tot, np.maximum(tot, 1.0)).astype(np.float32)
+        z = (np.einsum("nkp,np->nk", filters, x) / safe + fbias).astype(np.float32)
+        return z, safe
+    z = np.empty(fbias.shape, dtype=np.float32)
+    safe = np.empty((x.shape[0], 1), dtype=np.float32)
+    _hyper_contract(x, filters, fbias, z, safe)
+    return z, safe
 
 
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
@@ -777,4 +819,5 @@ def warm_up() -> None:
         block_marginals(f, o, 4)
         corr_peak(f, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
+    hyper_contract(np.zeros((1, 4), np.float32), np.zeros((1, 2, 4), np.float32), np.zeros((1, 2), np.float32))
     _warm = True

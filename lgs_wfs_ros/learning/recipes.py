@@ -51,12 +51,20 @@ class Recipe:
             the noise-free training images and the network's input Jacobian (Bishop 1995,
             :func:`.train.poisson_penalty`); the training set stays noise-free. None: no
             penalty.
-        loss: Adam only: "mse" (the paper's) or "euclid" (per sample, the root of the
-            squared Euclidean error plus the noise penalty: the validation metric).
+        loss: Adam only: "mse" (the paper's), "euclid" (per sample, the root of the
+            squared Euclidean error plus the noise penalty: the validation metric).; filter
+            recipes also "fisher" (the squared error times the spot's Fisher information, i.e.
+            (error / Cramer-Rao bound)^2: the bright, sharp spots count as much as the rest)
         seed: data seed (training stream) and initialisation seed.
         filters: marginal recipes: reference-conditioned filters per subaperture (the
             reference sets the first layer, :mod:`.hypertrain`; ``sizes`` is then the
             per-frame trunk, filters first); 0: a plain MLP on (sums, reference's).
+        hyper_conv: filter recipes: hidden channels of a convolutional network over the
+            reference's pixels that sets the filters (shift-equivariant: a spot far from the
+            block centre is read as one at the centre); empty: a dense tanh 64-64 network.
+        field_offset_px: marginal recipes: each spot and its reference moved together along
+            e by up to this many px (``refdata.PriorSpec.offset_px``: the places in the field
+            another h_ref, focus or field centring puts a spot); 0: the sensor's own.
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -85,6 +93,8 @@ class Recipe:
     loss: str = "mse"
     seed: int = 1
     filters: int = 0
+    hyper_conv: tuple = ()
+    field_offset_px: float = 0.0
     shipped: bool = True
     note: str = ""
 
@@ -96,7 +106,7 @@ class Recipe:
                     f"(along e): (sums / total - reference's, reference's, log10 total)"
                     ) if not self.filters else (
                     f"{self.filters} filters per subaperture set by its reference's column sums "
-                    f"(a tanh 64-64 network run at each calibration refit), applied to the "
+                    f"({self._hyper_form()}; run at each calibration refit), applied to the "
                     f"spot's column sums / total, then tanh {'-'.join(map(str, self.sizes))} with "
                     f"log10 total")
             return (f"{self.name}: {form}; {samples or self.samples} spots of the "
@@ -136,6 +146,12 @@ class Recipe:
                 f"profiles ({self.profile_model}"
                 f"{f' {self.mix_fraction:g}' if self.profile_model == 'mix' else ''}), {where}, {ph}, positions N(0, {self.sigma_px:g} px), {opt}, "
                 f"seed {self.seed}")
+
+    def _hyper_form(self) -> str:
+        if not self.hyper_conv:
+            return "a tanh 64-64 network"
+        return (f"tanh convolutions {'-'.join(map(str, self.hyper_conv))}, kernel 5, over its "
+                f"pixels, a gain and a bias per filter from their mean")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -196,6 +212,18 @@ RECIPES["ann_hyper"] = Recipe(
     detectors=("polar",),
     note="polar: 8 filters per subaperture set by its reference from the pupil calibration, "
          "applied to the column sums (along e); every radius to 35 m, 100-3000 photons")
+
+# ann_hyper with a shift-equivariant refit network (learning/hypertrain.py): the filters come
+# from convolutions over the reference's pixels, so a spot far from the block centre (a layer
+# above the prior's altitudes) is read as one at the centre; the loss weights each spot by
+# its Fisher information, so bright sharp spots count as much as the rest.
+RECIPES["ann_conv"] = Recipe(
+    "ann_conv", "polar", pupil=True, sizes=(16, 32, 1), conditioning="marginals", filters=16,
+    hyper_conv=(16, 16), samples=800_000, quick_samples=20_000, epochs=100, batch=512, lr=2e-3,
+    loss="fisher", seed=16, detectors=("polar",),
+    note="polar: 16 filters per subaperture set by convolutions over its reference from the "
+         "pupil calibration, applied to the column sums (along e); every radius to 35 m, "
+         "100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they
