@@ -41,24 +41,18 @@ PUPIL_RADIUS_M = 15.0
 
 
 def family_profiles(rng: np.random.Generator, family: str, n: int) -> np.ndarray:
-    """``(n, GRID.size)`` densities: training-block profiles under ``family``'s map (the
-    maps of ``sodium.unseen_sequence``, drawn per spot)."""
+    """``(n, GRID.size)`` densities: training-block profiles under ``family``'s map
+    (``sodium.family_map``, the maps of ``sodium.unseen_sequence``, drawn per spot)."""
     h_m, prof = sodium.load_measured()
     train = prof[sodium.measured_split("train", prof.shape[0])]
     out = np.zeros((n, GRID.size))
     for j, src in enumerate(train[rng.integers(0, train.shape[0], n)]):
         c0 = float(np.sum(h_m * src) / np.sum(src))
-        scale, target = 1.0, c0
-        if family == "high":
-            target = rng.uniform(100e3, 105e3)
-        elif family == "broad":
-            scale = rng.uniform(2.0, 2.5)
-        elif family == "narrow":
-            scale = rng.uniform(0.15, 0.25)
+        scale, target, sporadic = sodium.family_map(family, rng, c0)
         out[j] = np.interp(c0 + (GRID - target) / scale, h_m, src, left=0.0, right=0.0) / scale
-        if family == "sporadic":
-            frac = rng.uniform(0.3, 0.5)
-            layer = sodium.gaussian_profile(GRID, rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
+        if sporadic is not None:
+            frac, centre, fwhm = sporadic
+            layer = sodium.gaussian_profile(GRID, centre, fwhm)
             out[j] += layer * out[j].sum() * frac / (1 - frac) / layer.sum()
     return out
 

@@ -261,3 +261,19 @@ def test_hypertrain_experiment_cli_caches_data_and_exports(tmp_path, monkeypatch
     stamp = (data / "train_000.npz").stat().st_mtime_ns
     hypertrain.cache_data(data, 1)
     assert (data / "train_000.npz").stat().st_mtime_ns == stamp
+
+
+def test_fisher_weight_is_the_inverse_square_of_the_bound():
+    """hypertrain.fisher on a sampled Gaussian marginal of sigma s px with N photons is the
+    Cramer-Rao information N / s^2 (to the sampling's few per cent), and scales with N."""
+    from lgs_wfs_ros.learning import hypertrain
+    x = np.arange(P) - 7.3
+    rows = []
+    for s in (1.5, 2.5):
+        g = np.exp(-0.5 * (x / s) ** 2)
+        rows.append(g / g.sum())
+    refs = np.array(rows, np.float32)
+    marg = np.array([refs[0] * 1000, refs[1] * 250], np.float32)
+    pairs = refdata.MarginalPairs(marg, refs, np.zeros((2, 1), np.float32), np.ones(2), np.ones(2))
+    info = hypertrain.fisher(pairs)
+    np.testing.assert_allclose(info, [1000 / 1.5 ** 2, 250 / 2.5 ** 2], rtol=0.06)

@@ -32,8 +32,9 @@ pooled gain sets each filter's scale from the whole spot (how sharp it is).
 Loss: MSE, or with ``weight_power`` 1 (recipe loss ``fisher``) the squared error times the
 spot's Fisher information (:func:`fisher`), i.e. (error / Cramer-Rao bound)^2: the prior's
 mean squared error is dominated by faint, broad, truncated spots, where a network that knows
-the shift prior beats any unbiased estimator, and left the bright sharp ones 10-40 % behind
-the maximum likelihood; weighted, each spot counts by how far it is from its bound.
+the shift prior beats any unbiased estimator, and left the bright sharp ones 4-40 % behind
+the maximum likelihood (most with a sporadic layer); weighted, each spot counts by how
+far it is from its bound.
 
 Training (``lgs-wfs train ann_hyper`` / ``ann_conv``: :func:`train`; K = 8, trunk 8-32-1,
 dense 64-64, MSE / K = 16, trunk 16-32-1, conv 16-16 kernel 5, fisher):

@@ -20,8 +20,9 @@ Contents
 - :class:`EvolvingProfile`: a profile interpolated linearly in time between lidar frames.
 - :func:`measured_split`, :func:`training_model`: the one split of the measured night
   (train 0-65, test 66-87, contiguous) and the prior fitted on the train block only.
-- :func:`unseen_profiles`, :func:`unseen_sequence`, :data:`FAMILIES`: evolving test-block profiles moved, stretched,
-  squeezed or given a sporadic layer: skies no training prior holds.
+- :func:`unseen_profiles`, :func:`unseen_sequence`, :func:`family_map`, :data:`FAMILIES`:
+  evolving test-block profiles moved, stretched, squeezed or given a sporadic layer: skies no
+  training prior holds.
 
 See ``docs/sodium.md`` for how the model was fitted and the numbers it gives.
 """
@@ -963,21 +964,32 @@ def unseen_sequence(family: str, n_frames: int, frame_rate_hz: float, seed: int 
     c0 = float(np.mean(centroid_altitude(h_m, EvolvingProfile(h_m, test, seconds_per_profile)
                                          .at_many(t0 + np.linspace(0, span, 8)))))
     h = family_grid()
-    scale, target = 1.0, c0
+    scale, target, sporadic = family_map(family, rng, c0)
+    # rho_new(h) = rho_src(c0 + (h - target) / scale) / scale: the same map for every knot
+    knots = _interp_rows(h_m, test, c0 + (h - target) / scale) / scale
+    if sporadic is not None:
+        frac, centre, fwhm = sporadic
+        layer = gaussian_profile(h, centre, fwhm)
+        mass = (knots * _weights(h)).sum(axis=1, keepdims=True)
+        knots = knots + layer[None, :] * (mass * frac / (1 - frac) / (layer * _weights(h)).sum())
+    return EvolvingProfile(h, knots, seconds_per_profile), t0
+
+
+def family_map(family: str, rng: np.random.Generator, c0: float) -> tuple:
+    """One draw of ``family``'s map of a profile of centroid ``c0`` (m): ``(scale, target_m,
+    sporadic)``, the new density ``rho(c0 + (h - target) / scale) / scale`` plus, when
+    ``sporadic`` is ``(fraction, centre_m, fwhm_m)``, a Gaussian layer holding that fraction
+    of the light (:data:`FAMILY_DOC`)."""
+    scale, target, sporadic = 1.0, c0, None
     if family == "high":
         target = rng.uniform(100e3, 105e3)
     elif family == "broad":
         scale = rng.uniform(2.0, 2.5)
     elif family == "narrow":
         scale = rng.uniform(0.15, 0.25)
-    # rho_new(h) = rho_src(c0 + (h - target) / scale) / scale: the same map for every knot
-    knots = _interp_rows(h_m, test, c0 + (h - target) / scale) / scale
-    if family == "sporadic":
-        frac = rng.uniform(0.3, 0.5)
-        layer = gaussian_profile(h, rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
-        mass = (knots * _weights(h)).sum(axis=1, keepdims=True)
-        knots = knots + layer[None, :] * (mass * frac / (1 - frac) / (layer * _weights(h)).sum())
-    return EvolvingProfile(h, knots, seconds_per_profile), t0
+    elif family == "sporadic":
+        sporadic = (rng.uniform(0.3, 0.5), rng.uniform(88e3, 100e3), rng.uniform(300.0, 800.0))
+    return scale, target, sporadic
 
 
 def unseen_profiles(family: str, n_frames: int, frame_rate_hz: float, seed: int = 0,
