@@ -91,20 +91,3 @@ def test_margtrain_export_computes_the_trained_network():
     np.testing.assert_allclose(pairs.refs.sum(axis=1), 1.0, rtol=1e-5)
     want = forward(layers, margtrain.features(pairs.marg, pairs.refs).astype(np.float64))
     np.testing.assert_allclose(margtrain.predict(model, pairs), want, rtol=1e-4, atol=1e-4)
-
-
-def test_field_offsets_move_the_spot_and_its_reference_together():
-    """``PriorSpec.offset_px``: the reference sits anywhere within the offsets, the spot
-    moves with it (the label stays the shift between them). (With 0 the spots are those
-    drawn before the option existed: test_models reproduces the shipped marginal models'
-    recorded check errors from fresh draws.)"""
-    from dataclasses import replace
-    from lgs_wfs_ros.learning import refdata
-    near = replace(refdata.MARGINAL_SPEC, radius_m=(0.3, 3.0))       # short, untruncated spots
-    x = np.arange(P) - (P - 1) / 2
-    moved = refdata.marginal_pairs(np.random.default_rng(1), 200, replace(near, offset_px=4.0))
-    still = refdata.marginal_pairs(np.random.default_rng(1), 200, near)
-    cog = lambda m: (m @ x) / m.sum(axis=1)                           # noqa: E731
-    assert np.ptp(cog(moved.refs)) > 6.0 > 3.0 > np.ptp(cog(still.refs))
-    resid = cog(moved.marg) - cog(moved.refs) - moved.y[:, 0]
-    assert np.sqrt(np.mean(resid ** 2)) < 0.1                        # photon noise, not the offset

@@ -95,13 +95,13 @@ def test_reference_model_contract_and_check_error(name):
 @pytest.mark.parametrize("name", MARGINAL_MODELS)
 def test_marginal_model_contract_and_check_error(name):
     """ann_marg, ann_hyper, ann_conv: column sums and reference inputs (16 each), one
-    output, polar, the domain of the recipe's marginal prior, and the recorded check error
+    output, polar, the marginal domain, and the recorded check error
     reproduced on the same fresh spots."""
     from lgs_wfs_ros.learning import margtrain
     path = MODELS / f"{name}.onnx"
     meta = export.read_metadata(path)
     assert meta["lgs_wfs.input"] == "marginals" and meta["lgs_wfs.detector"] == "polar"
-    assert meta["lgs_wfs.domain"] == margtrain.domain(margtrain.prior_of(recipes.get(name)))
+    assert meta["lgs_wfs.domain"] == margtrain.domain()
     ins = {i.name: i.shape for i in export.session(path).get_inputs()}
     assert ins == {"marginals": ["batch", 16], "reference": ["batch", 16]}
     check = meta["lgs_wfs.training"]["check"]

@@ -40,8 +40,7 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
         return reference_domain(rec)
     if rec.conditioning == "marginals":          # ann_marg: the same ranges, polar only
-        from dataclasses import replace
-        return marginal_domain(replace(refdata.MARGINAL_SPEC, offset_px=float(rec.field_offset_px)))
+        return marginal_domain()
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)

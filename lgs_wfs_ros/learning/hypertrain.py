@@ -440,21 +440,18 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     from . import export
     t0 = time.perf_counter()
     spec = spec_of(rec, epochs, seed)
-    prior = margtrain.prior_of(rec)
-    data = margtrain.generate(samples, seed, progress=progress, spec=prior)
+    data = margtrain.generate(samples, seed, progress=progress)
     mon = margtrain.generate(min(20_000, max(2000, samples // 10)), margtrain.MONITOR_SEED + seed,
-                             progress=False, spec=prior)
+                             progress=False)
     gen_s = time.perf_counter() - t0
     log = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
     net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
     del data
     check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
     training = record(rec, spec, samples, gen_s, net, hist, _mae(net, _tensors(check)),
-                      "fresh spots of the training prior (margtrain's check set)" if not prior.offset_px
-                      else "fresh spots of the marginal prior without field offsets (margtrain's "
-                           "check set, the same for every marginal model)")
+                      "fresh spots of the training prior (margtrain's check set)")
     model = build_model(net, spec, {"lgs_wfs.training": training,
-                                    "lgs_wfs.domain": margtrain.domain(prior)}, rec.name)
+                                    "lgs_wfs.domain": margtrain.domain()}, rec.name)
     path = export.save(model, Path(target))
     return {"path": str(path), "training": training, "history": hist}
 

@@ -49,23 +49,14 @@ def features(marg: np.ndarray, refs: np.ndarray) -> np.ndarray:
                            np.log10(tot) / 3.0 - LOG_OFFSET], axis=1).astype(np.float32)
 
 
-def prior_of(rec: recipes.Recipe) -> refdata.PriorSpec:
-    """The marginal prior a recipe trains on: :data:`.refdata.MARGINAL_SPEC` with the
-    recipe's field offsets."""
-    from dataclasses import replace
-    return replace(refdata.MARGINAL_SPEC, offset_px=float(rec.field_offset_px))
-
-
-def generate(n: int, seed: int, batch: int = 4096, progress: bool = True,
-             spec: refdata.PriorSpec = refdata.MARGINAL_SPEC) -> refdata.MarginalPairs:
-    """``n`` spots, batch ``k`` from ``default_rng([seed, k])`` (prior ``spec``, by default
-    :data:`.refdata.MARGINAL_SPEC`)."""
+def generate(n: int, seed: int, batch: int = 4096, progress: bool = True) -> refdata.MarginalPairs:
+    """``n`` spots, batch ``k`` from ``default_rng([seed, k])`` (:data:`.refdata.MARGINAL_SPEC`)."""
     from tqdm.auto import tqdm
     parts, done = [], 0
     with tqdm(total=n, desc="spots", unit="spot", disable=not progress, mininterval=5.0) as bar:
         while done < n:
             m = min(batch, n - done)
-            parts.append(refdata.marginal_pairs(np.random.default_rng([seed, len(parts)]), m, spec))
+            parts.append(refdata.marginal_pairs(np.random.default_rng([seed, len(parts)]), m))
             done += m
             bar.update(m)
     return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts])
@@ -138,7 +129,7 @@ def record(rec: recipes.Recipe, samples: int, seed: int, generate_s: float, hist
            monitor_mae_px: float, check_mae_px: float, check_what: str, **extra) -> dict:
     """The training record a model on the marginal prior carries (``lgs_wfs.training``):
     recipe, data, prior, timings, monitor and check errors (px), plus ``extra`` fields."""
-    prior = prior_of(rec)
+    prior = refdata.MARGINAL_SPEC
     return {"recipe": rec.to_dict(), "recipe_line": rec.line(samples), "optimizer": "adam",
             "seed": seed, "samples": samples, "quick": False, **extra, "photons": None,
             "photons_range": list(prior.photons), "profiles": prior.describe(),
@@ -185,5 +176,4 @@ def train_recipe(name: str, **kwargs) -> dict:
     return _train_recipe(name, trainer=train, **kwargs)
 
 
-__all__ = ["train_recipe", "train", "record", "build_model", "features", "generate", "predict", "domain",
-           "prior_of"]
+__all__ = ["train_recipe", "train", "record", "build_model", "features", "generate", "predict", "domain"]

@@ -62,9 +62,6 @@ class Recipe:
         hyper_conv: filter recipes: hidden channels of a convolutional network over the
             reference's pixels that sets the filters (shift-equivariant: a spot far from the
             block centre is read as one at the centre); empty: a dense tanh 64-64 network.
-        field_offset_px: marginal recipes: each spot and its reference moved together along
-            e by up to this many px (``refdata.PriorSpec.offset_px``: the places in the field
-            another h_ref, focus or field centring puts a spot); 0: the sensor's own.
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -94,7 +91,6 @@ class Recipe:
     seed: int = 1
     filters: int = 0
     hyper_conv: tuple = ()
-    field_offset_px: float = 0.0
     shipped: bool = True
     note: str = ""
 

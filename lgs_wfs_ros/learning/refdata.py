@@ -52,17 +52,12 @@ class PriorSpec:
     stale_shift_m: float = 150.0
     stale_stretch: float = 0.05
     node_noise: float = 0.05
-    #: spot and reference moved together along e by U(-offset_px, offset_px): the places in
-    #: the field another h_ref, focus or field centring puts a spot (0: the sensor's own)
-    offset_px: float = 0.0
 
     def describe(self) -> str:
         return (f"broad prior from measured profiles 0-65 (the training split): centroid "
                 f"{self.centroid_km[0]:g}-{self.centroid_km[1]:g} km, FWHM {self.fwhm_km[0]:g}-"
                 f"{self.fwhm_km[1]:g} km, {self.double_fraction:.0%} double peaks, "
-                f"{self.sporadic_fraction:.0%} sporadic thin layers"
-                + (f"; spot and reference moved together along e by up to +-{self.offset_px:g} px "
-                   f"(other h_ref, focus or field centring)" if self.offset_px else ""))
+                f"{self.sporadic_fraction:.0%} sporadic thin layers")
 
 
 def _mass(h, rho):
@@ -165,12 +160,9 @@ def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray) -
     render = sensor.replace(detector="cartesian")
     t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
     rho = broad_profiles(rng, n, spec)
-    d = np.zeros((n, 2))                     # where in the field the reference sits
-    if spec.offset_px:
-        d = rng.uniform(-spec.offset_px, spec.offset_px, size=(n, 1)) * e
-    img, _ = SpotModel(render, r, e, GRID, rho, max_shift_px=2.4 + spec.offset_px).images(t + d)
+    img, _ = SpotModel(render, r, e, GRID, rho, max_shift_px=2.4).images(t)
     ref_rho = calibrated(rng, rho, spec, sensor)
-    ref, _ = SpotModel(render, r, e, GRID, ref_rho, max_shift_px=spec.offset_px).images(d)
+    ref, _ = SpotModel(render, r, e, GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
     ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
     counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
                     True, "float32")
