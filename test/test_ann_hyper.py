@@ -134,6 +134,72 @@ def test_compiled_first_layer_gives_the_whole_graphs_shifts(templates, tmp_path)
     assert np.isnan(z[2]).all() and np.isnan(safe[2, 0]) and safe[1, 0] == 1.0
 
 
+def linear_pixel_hyper_model(path, trunk=True):
+    """A cartesian hyper model on whole blocks that is cog with bias = pupil: two filters,
+    the pixels' x and y (whatever the reference), bias minus the reference's CoG; with
+    ``trunk`` it names its first layer (``zc``, ``safe``) for the compiled pass."""
+    c = np.arange(P) - (P - 1) / 2
+    xy = np.stack([np.tile(c, P), np.repeat(c, P)]).astype(np.float32)        # (2, p*p)
+    inits = [numpy_helper.from_array(xy[None], "W"), numpy_helper.from_array(-xy.T.copy(), "Wb"),
+             numpy_helper.from_array(np.array([1], np.int64), "ax1"),
+             numpy_helper.from_array(np.array([0.0], np.float32), "zero"),
+             numpy_helper.from_array(np.array([1.0], np.float32), "one")]
+    nodes = [helper.make_node("Mul", ["reference", "zero"], ["r0"]),
+             helper.make_node("Unsqueeze", ["r0", "ax1"], ["r03"]),
+             helper.make_node("Add", ["W", "r03"], ["filters"]),              # (n, 2, p*p)
+             helper.make_node("MatMul", ["reference", "Wb"], ["fbias"]),      # (n, 2)
+             helper.make_node("ReduceSum", ["image", "ax1"], ["total"], keepdims=1),
+             helper.make_node("Max", ["total", "one"], ["safe"]),
+             helper.make_node("Div", ["image", "safe"], ["unit"]),
+             helper.make_node("Einsum", ["filters", "unit"], ["zu"], equation="nkp,np->nk"),
+             helper.make_node("Add", ["zu", "fbias"], ["zc"]),
+             helper.make_node("Mul", ["safe", "zero"], ["s0"]),
+             helper.make_node("Add", ["zc", "s0"], ["shift"])]
+    g = helper.make_graph(nodes, "hyper_pix",
+                          [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["batch", P * P]),
+                           helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", P * P])],
+                          [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", 2])], inits)
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    m.ir_version = 8
+    meta = {"lgs_wfs.pixels": P, "lgs_wfs.input": "pixels", "lgs_wfs.input_norm": "none",
+            "lgs_wfs.conditioning": "reference", "lgs_wfs.conditioning_input": "reference",
+            "lgs_wfs.input_name": "image", "lgs_wfs.output_frame": "block",
+            "lgs_wfs.detector": "cartesian", "lgs_wfs.hyper": True,
+            "lgs_wfs.domain": {**DOMAIN, "detector": ["cartesian"], "input": "image+reference"}}
+    if trunk:
+        meta["lgs_wfs.hyper_trunk"] = {"z": "zc", "total": "safe"}
+    helper.set_model_props(m, {k: json.dumps(v) for k, v in meta.items()})
+    path.write_bytes(m.SerializeToString())
+    return path
+
+
+@pytest.mark.parametrize("trunk", [True, False])
+def test_pixel_hyper_model_reads_whole_blocks_on_a_cartesian_detector(trunk, tmp_path):
+    """A hyper model on whole blocks (cartesian; ``benchmarks/cartesian_filters.py`` exports
+    them): its filters come from the calibration's reference images at each refit, the
+    frame goes through them (compiled, or the whole frame graph) and the slopes equal cog
+    with bias = pupil through refits, on frames and stacks; a block without light is NaN."""
+    sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
+    ann = options.build("ann", sensor, {"model": str(linear_pixel_hyper_model(tmp_path / "p.onnx", trunk)), **pup})
+    cog = options.build("cog", sensor, {"bias": "pupil", **pup})
+    plain = options.build("cog", sensor, {})
+    assert (ann._trunk is not None) == trunk and not ann.marginals
+    lay = geometry.layout(sensor)
+    for k, f in enumerate(frames(sensor, 7)):
+        data = f if k % 2 else geometry.frame_to_stack(f, lay)
+        if k == 5:
+            data = geometry.frame_to_stack(f, lay).copy()
+            data[7] = 0
+        a, c, p = ann.centroid(data), cog.centroid(data), plain.centroid(data)
+        np.testing.assert_allclose(a, c, atol=2e-4)
+        if k >= 3:
+            assert np.abs(a - p)[np.isfinite(p)].mean() > 0.01
+        if k == 5:
+            assert np.isnan(a[7]).all() and np.isfinite(np.delete(a, 7, axis=0)).all()
+    assert ann.describe()["pupil_calibration"]["fits"] == 2
+
+
 def test_hyper_metadata_is_checked(tmp_path):
     with pytest.raises(ValueError, match="hyper"):
         ann_mod.read_metadata({"lgs_wfs.pixels": "16", "lgs_wfs.hyper": "true"})

@@ -184,8 +184,9 @@ def read_metadata(meta_map: dict) -> dict:
                          "lgs_wfs.conditioning reference")
     if not isinstance(md["hyper"], bool):
         raise ValueError(f"ann: metadata lgs_wfs.hyper must be true or false, got {md['hyper']!r}")
-    if md["hyper"] and md["input"] != "marginals":
-        raise ValueError("ann: a hyper model must be a marginals model (lgs_wfs.input marginals)")
+    if md["hyper"] and (md["conditioning"] != "reference" or md["input_norm"] != "none"):
+        raise ValueError("ann: a hyper model must read the reference (lgs_wfs.conditioning "
+                         "reference) and raw counts (lgs_wfs.input_norm none)")
     if not (isinstance(md["hyper_outputs"], list) and md["hyper_outputs"]
             and all(isinstance(v, str) for v in md["hyper_outputs"])):
         raise ValueError("ann: metadata lgs_wfs.hyper_outputs must be a list of tensor names")
@@ -598,6 +599,8 @@ class ANN(Centroider):
         raw = np.asarray(data)
         if self.marginals:
             return self._centroid_marginals(raw)
+        if self._refit is not None:
+            return self._centroid_hyper_pixels(raw)
         rows = self.frame_rows(raw) if self.folded is not None and self._all_blocks else None
         if rows is not None:                            # a frame: every block in one pass
             x = rows if rows.dtype == np.float32 else rows.astype(np.float32)
@@ -651,6 +654,30 @@ class ANN(Centroider):
             y = marg[:, 1] @ (np.arange(self.p) - self.centre) / total - self._bias_y
         out = np.stack([out[:, 0] * self.meta["output_scale"], y], axis=1)
         return self.finish(out, ok)
+
+    def _centroid_hyper_pixels(self, raw: np.ndarray) -> np.ndarray:
+        """A hyper model on whole blocks (cartesian): each block's counts through its own
+        filters (one compiled pass, :func:`.kernels.hyper_contract` over the block's
+        ``p * p`` pixels) and the trunk in onnxruntime; the frame feeds the pupil calibration
+        first (a refit installs its filters for this frame)."""
+        flat = self.float_stack(raw).reshape(self.n, -1)
+        self._observe(flat=flat)
+        f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
+        if self._trunk is not None:
+            z, safe = kernels.hyper_contract(flat, f, b)
+            names = self.meta["hyper_trunk"]
+            out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
+            total = safe[:, 0]
+        else:
+            x = np.ascontiguousarray(flat, dtype=np.float32)
+            out = self.session.run(None, {self.input_name: x, **self.cond[1]})[0]
+            total = x.sum(axis=1)
+        if out.shape != (self.n, 2):
+            raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 2)}")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(total) & (flat.sum(axis=1) > 0)
+        out = np.asarray(out, dtype=np.float64) * self.meta["output_scale"]
+        return self.finish(self._block_axes(out), ok)
 
     def _block_axes(self, out: np.ndarray) -> np.ndarray:
         """Model output ``(..., n, 2)`` in its ``output_frame`` -> block pixel axes."""
