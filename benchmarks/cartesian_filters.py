@@ -29,7 +29,8 @@ reference's CoG). Needs torch.
 Result (2026-11-26, docs/ann_ref.md "A cartesian ann_conv"): K = 8, 8-8 channels, 200,000
 spots, 20 epochs (~15 min), with or without ``--residual`` (the output added to the
 calibrated CoG): 1.03-2.95x the bound, noisier than the calibrated CoG it starts from on
-measured and narrow profiles (across e 0.020-0.022 px rms where the CoG has 0.018). Not a
+measured and narrow profiles (across e 0.020-0.022 px rms where the CoG has 0.018); 60 epochs
+gained 1-11 % (1.01-2.47x). Not a
 model: ``ann_conv`` needed 80 million spot-steps on polar pixels, this had 4 million at
 about 5x the cost a step.
 """
