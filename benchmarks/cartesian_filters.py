@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgs_wfs_ros.learning import margtrain, refdata
+from lgs_wfs_ros.learning import hypertrain, margtrain, refdata
 from lgs_wfs_ros.optics.detector import expose
 from lgs_wfs_ros.optics.spots import SpotModel
 from lgs_wfs_ros.sensor import Sensor
@@ -223,20 +223,11 @@ def build_onnx(net, domain: dict, training: dict | None = None):
     unit sum; ``filters (batch, K, p*p)`` acting on ``image / safe`` and ``fbias (batch, K)``
     from the reference alone; ``zc`` the first layer before the log-flux term, ``safe =
     max(sum image, 1)``; output ``shift (batch, 2)`` px, block (= detector) axes."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
     cfg = net.config
     k, pp, kern = cfg["k"], P * P, cfg["kernel"]
     st = {n_: v.detach().cpu().numpy().astype(np.float64) for n_, v in net.state_dict().items()}
-    inits, nodes = [], []
-
-    def init(arr, nm, dtype=np.float32):
-        inits.append(numpy_helper.from_array(np.asarray(arr, dtype), nm))
-        return nm
-
-    def node(op, ins, outs, **kw):
-        nodes.append(helper.make_node(op, ins, outs, **kw))
-        return outs[0]
+    gb = hypertrain.Graph()
+    init, node, inits, nodes = gb.init, gb.node, gb.inits, gb.nodes
 
     pr = node("Mul", ["reference", init([pp], "c_pp")], ["pr"])                       # (n, pp)
     img4 = init([-1, 1, P, P], "shp4", np.int64)
@@ -296,25 +287,10 @@ def build_onnx(net, domain: dict, training: dict | None = None):
             hh = node("Tanh", [zz], [f"th{n_}"])
     if res:
         node("Add", ["trunk_out", cogd], ["shift"])
-    graph = helper.make_graph(
-        nodes, "ann_cart",
-        [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["batch", pp]),
-         helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", pp])],
-        [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", 2])], inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)],
-                              producer_name="lgs_wfs_ros.learning")
-    model.ir_version = 8
-    meta = {"lgs_wfs.pixels": P, "lgs_wfs.input": "pixels", "lgs_wfs.input_norm": "none",
-            "lgs_wfs.conditioning": "reference", "lgs_wfs.conditioning_input": "reference",
-            "lgs_wfs.input_name": "image", "lgs_wfs.output_scale": 1.0,
-            "lgs_wfs.output_frame": "block", "lgs_wfs.detector": "cartesian",
-            "lgs_wfs.hyper": True, "lgs_wfs.hyper_outputs": ["filters", "fbias"],
-            "lgs_wfs.hyper_trunk": {"z": "zc", "total": "safe"}, "lgs_wfs.domain": domain}
+    meta = {"lgs_wfs.domain": domain}
     if training is not None:
         meta["lgs_wfs.training"] = training
-    helper.set_model_props(model, {k_: json.dumps(v, sort_keys=True) for k_, v in meta.items()})
-    onnx.checker.check_model(model)
-    return model
+    return hypertrain.package(nodes, inits, "ann_cart", "image", P, 2, "cartesian", meta)
 
 
 # -- validation ------------------------------------------------------------------------------

@@ -321,6 +321,24 @@ def _conv_refit(net, spec: HyperSpec, st: dict, pr: str, log_pr: str, node, init
     return f, c
 
 
+class Graph:
+    """An ONNX graph under construction: ``init`` adds a constant, ``node`` an operator;
+    each returns the name of its (first) output."""
+
+    def __init__(self):
+        self.inits, self.nodes = [], []
+
+    def init(self, arr, nm: str, dtype=np.float32) -> str:
+        from onnx import numpy_helper
+        self.inits.append(numpy_helper.from_array(np.asarray(arr, dtype), nm))
+        return nm
+
+    def node(self, op: str, ins, outs, **kw) -> str:
+        from onnx import helper
+        self.nodes.append(helper.make_node(op, ins, outs, **kw))
+        return outs[0]
+
+
 def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
                 contraction: str = "einsum"):
     """One ONNX graph: reference -> (filters, fbias) [refit part]; marginals, filters, fbias ->
@@ -329,22 +347,12 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
     ``wN ln(N)``, multiplies the template rows by ``N^a`` and runs the tanh trunk.
     ``contraction``: the per-block product ``filters u`` as one ``Einsum`` (faster in
     onnxruntime 1.31) or a batched ``MatMul``."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
     p, k, j = spec.pixels, spec.k, len(spec.templates)
     kk = k + j
     st = {n_: v.detach().cpu().numpy().astype(np.float64) for n_, v in net.state_dict().items()}
     f32 = lambda a: np.asarray(a, np.float32)                         # noqa: E731
-    inits, nodes = [], []
-
-    def init(arr, nm, dtype=np.float32):
-        inits.append(numpy_helper.from_array(np.asarray(arr, dtype), nm))
-        return nm
-
-    def node(op, ins, outs, **kw):
-        nodes.append(helper.make_node(op, ins, outs, **kw))
-        return outs[0]
-
+    gb = Graph()
+    init, node, inits, nodes = gb.init, gb.node, gb.inits, gb.nodes
     # ---- refit part: reference (n, p) unit sum ----
     pr = node("Mul", ["reference", init([p], "c_p")], ["pr"])
     log_pr = node("Log", [node("Add", [pr, init([EPS], "c_eps")], ["pr_eps"])], ["log_pr"])
@@ -400,18 +408,32 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
                   ["shift" if last else f"tz{n_}"])
         if not last:
             h = node("Tanh", [zz], [f"th{n_}"])
+    return package(nodes, inits, name, "marginals", p, 1, "polar", metadata)
+
+
+def package(nodes, inits, name: str, frame_input: str, pixels: int, outputs: int,
+            detector: str, metadata: dict):
+    """The checked ONNX model of a hyper graph: inputs ``frame_input (batch, w)`` (``w = p``
+    marginals, ``p * p`` whole blocks) and ``reference (batch, w)``, output ``shift (batch,
+    outputs)``, and the ``lgs_wfs.*`` metadata the centroider reads (hyper outputs
+    ``filters``/``fbias``, trunk cut at ``zc``/``safe``) plus ``metadata``."""
+    import onnx
+    from onnx import TensorProto, helper
+    marginals = frame_input == "marginals"
+    width = pixels if marginals else pixels * pixels
     graph = helper.make_graph(
         nodes, name,
-        [helper.make_tensor_value_info("marginals", TensorProto.FLOAT, ["batch", p]),
-         helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", p])],
-        [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", 1])], inits)
+        [helper.make_tensor_value_info(frame_input, TensorProto.FLOAT, ["batch", width]),
+         helper.make_tensor_value_info("reference", TensorProto.FLOAT, ["batch", width])],
+        [helper.make_tensor_value_info("shift", TensorProto.FLOAT, ["batch", outputs])], inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)],
                               producer_name="lgs_wfs_ros.learning")
     model.ir_version = 8
-    meta = {"lgs_wfs.pixels": p, "lgs_wfs.input": "marginals", "lgs_wfs.input_norm": "none",
+    meta = {"lgs_wfs.pixels": pixels, "lgs_wfs.input": "marginals" if marginals else "pixels",
+            "lgs_wfs.input_norm": "none",
             "lgs_wfs.conditioning": "reference", "lgs_wfs.conditioning_input": "reference",
-            "lgs_wfs.input_name": "marginals", "lgs_wfs.output_scale": 1.0,
-            "lgs_wfs.output_frame": "block", "lgs_wfs.detector": "polar",
+            "lgs_wfs.input_name": frame_input, "lgs_wfs.output_scale": 1.0,
+            "lgs_wfs.output_frame": "block", "lgs_wfs.detector": detector,
             "lgs_wfs.hyper": True, "lgs_wfs.hyper_outputs": [FILTERS, FBIAS],
             "lgs_wfs.hyper_trunk": {"z": "zc", "total": "safe"}, **metadata}
     helper.set_model_props(model, {k_: json.dumps(v, sort_keys=True) for k_, v in meta.items()})
