@@ -58,9 +58,11 @@ def family_profiles(rng: np.random.Generator, family: str, n: int) -> np.ndarray
 
 
 def spots(rng: np.random.Generator, n: int, family: str, photons: float,
-          sensor: Sensor = Sensor()) -> tuple[refdata.MarginalPairs, np.ndarray]:
-    """``(pairs, ml (n,))``: ``n`` noisy spots of ``family`` as marginal pairs (the networks'
-    input) and ``ml``'s estimate along e, px."""
+          sensor: Sensor = Sensor(), margin_px: int = 0) -> tuple:
+    """``(pairs, ml (n,), wide)``: ``n`` noisy spots of ``family`` as marginal pairs (the
+    networks' input), ``ml``'s estimate along e, px, and with ``margin_px`` > 0 the
+    references' column sums on a field that much wider each side (``(n, p + 2 margin)``,
+    unit sum inside the field; else None)."""
     p = sensor.pixels
     render = sensor.replace(detector="cartesian")
     r = PUPIL_RADIUS_M * np.sqrt(rng.uniform(0.02, 1.0, size=n))
@@ -89,7 +91,13 @@ def spots(rng: np.random.Generator, n: int, family: str, photons: float,
     refm = refm / refm.sum(axis=1, keepdims=True)
     pairs = refdata.MarginalPairs(marg.astype(np.float32), refm.astype(np.float32),
                                   t[:, :1].astype(np.float32), r, np.full(n, float(photons)))
-    return pairs, ml
+    wide = None
+    if margin_px:
+        big = render.replace(pixels=p + 2 * margin_px)
+        w, _ = SpotModel(big, r, e, GRID, ref, max_shift_px=0.0).images(np.zeros((n, 2)))
+        w = w.sum(axis=1)
+        wide = (w / w[:, margin_px:margin_px + p].sum(axis=1, keepdims=True)).astype(np.float32)
+    return pairs, ml, wide
 
 
 def main(argv=None) -> int:
