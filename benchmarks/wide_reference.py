@@ -17,7 +17,9 @@ alone.
 ``validate``: ``marginal_validation.py``'s families (the unseen maps applied to the
 training block), each network's mean absolute error along e over ``ml``'s, beside the
 shipped ``ann_conv``, and the mean error at r > 11 m. Needs torch. Results:
-docs/ann_ref.md, "A wider reference".
+docs/ann_ref.md, "A wider reference". At 40 epochs the margin took the high layer at
+1000 photons from 1.090 to 1.038x ``ml``; at 100 epochs the control caught up (1.053
+against 1.050x), so the margin speeds the learning but does not move where it ends.
 """
 
 from __future__ import annotations
