@@ -37,7 +37,6 @@ about 5x the cost a step.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
@@ -123,20 +122,15 @@ def module(k: int = 8, channels=(8, 8), kernel: int = 5, trunk=(32,), seed: int 
                 self.head.weight.mul_(0.5)
                 self.pool.weight.mul_(0.1)
                 self.pool.bias.zero_()
-            dims = (k, *trunk)
-            mods = []
-            for a, b in zip(dims[:-1], dims[1:]):
-                mods += [nn.Linear(a, b), nn.Tanh()]
-            mods.append(nn.Linear(dims[-1], 2))
-            self.trunk = nn.Sequential(*mods)
+            self.trunk = hypertrain.tanh_mlp((k, *trunk), 2)
             self.residual = residual
             c = torch.arange(P, dtype=torch.float32) - (P - 1) / 2
             self.register_buffer("xy", torch.stack([c.repeat(P), c.repeat_interleave(P)]).reshape(2, P, P),
                                  persistent=False)
             if residual:
                 with torch.no_grad():
-                    mods[-1].weight.mul_(0.1)
-                    mods[-1].bias.zero_()
+                    self.trunk[-1].weight.mul_(0.1)
+                    self.trunk[-1].bias.zero_()
 
         def filters(self, r):
             pr = (P * P) * r
@@ -190,29 +184,15 @@ def fit(data: dict, monitor: dict, k: int, epochs: int, lr: float = 2e-3, batch:
     tr, tot = tensors(data)
     fi = fisher2(tot, data["refs"])
     fi = torch.from_numpy((fi / np.trace(fi, axis1=1, axis2=2).mean()).astype(np.float32))
-    n = tr[0].shape[0]
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    steps = epochs * math.ceil(n / batch)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
-    g = torch.Generator().manual_seed(16)
-    best, best_state, t0 = math.inf, None, time.perf_counter()
-    for ep in range(epochs):
-        perm = torch.randperm(n, generator=g)
-        for a in range(0, n, batch):
-            idx = perm[a:a + batch]
-            err = net(tr[0][idx], tr[1][idx], tr[2][idx]) - tr[3][idx]
-            loss = torch.einsum("ni,nij,nj->n", err, fi[idx], err).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-        m = float(np.abs(predict(net, monitor) - monitor["y"]).sum(axis=1).mean())
-        if m < best:
-            best, best_state = m, {kk: v.clone() for kk, v in net.state_dict().items()}
-        log(f"epoch {ep:3d} loss {float(loss.detach()):.4f} monitor |err|_1 {m:.4f} px "
-            f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    net.load_state_dict(best_state)
+
+    def loss_of(idx):
+        err = net(tr[0][idx], tr[1][idx], tr[2][idx]) - tr[3][idx]
+        return torch.einsum("ni,nij,nj->n", err, fi[idx], err).mean()
+
+    def monitor_err():
+        return float(np.abs(predict(net, monitor) - monitor["y"]).sum(axis=1).mean())
+
+    hypertrain.adam_cosine(net, tr[0].shape[0], loss_of, monitor_err, epochs, lr, batch, 16, log)
     return net
 
 
@@ -349,23 +329,14 @@ def validate(paths, spots: int) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    a = sub.add_parser("data")
-    a.add_argument("dir", type=Path)
-    a.add_argument("--spots", type=int, default=240000)
-    t = sub.add_parser("train")
-    t.add_argument("dir", type=Path)
-    t.add_argument("model", type=Path)
+    from marginal_validation import experiment_cli
+    ap, _, t, v = experiment_cli(__doc__, spots=240000, epochs=30)
     t.add_argument("--k", type=int, default=8)
-    t.add_argument("--epochs", type=int, default=30)
     t.add_argument("--chunks", type=int, default=0, help="train chunks to use (0: all)")
     t.add_argument("--channels", type=int, nargs="+", default=[8, 8])
     t.add_argument("--kernel", type=int, default=5)
     t.add_argument("--residual", action="store_true", help="the output adds to the calibrated CoG")
-    v = sub.add_parser("validate")
     v.add_argument("models", type=Path, nargs="+")
-    v.add_argument("--spots", type=int, default=2000)
     args = ap.parse_args(argv)
     if args.cmd == "data":
         cache(args.dir, args.spots)
@@ -375,7 +346,7 @@ def main(argv=None) -> int:
         files = files[:args.chunks] if args.chunks else files
         net = fit(load(files), load([args.dir / "monitor.npz"]), args.k, args.epochs,
                   channels=tuple(args.channels), kernel=args.kernel, residual=args.residual)
-        torch.save({"config": net.config, "state": net.state_dict()}, args.model)
+        torch.save({"config": net.config, "state": net.state_dict()}, args.out)
     else:
         validate(args.models, args.spots)
     return 0

@@ -100,6 +100,25 @@ def spots(rng: np.random.Generator, n: int, family: str, photons: float,
     return pairs, ml, wide
 
 
+def experiment_cli(doc: str, spots: int, epochs: int) -> tuple:
+    """``(parser, data, train, validate)`` of an experiment script's three subcommands:
+    ``data DIR [--spots]`` (cache training spots), ``train DIR OUT [--epochs]`` and
+    ``validate [--spots 2000]`` (on these validation families); each script adds the rest."""
+    from pathlib import Path
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    data = sub.add_parser("data")
+    data.add_argument("dir", type=Path)
+    data.add_argument("--spots", type=int, default=spots)
+    train = sub.add_parser("train")
+    train.add_argument("dir", type=Path)
+    train.add_argument("out", type=Path)
+    train.add_argument("--epochs", type=int, default=epochs)
+    validate = sub.add_parser("validate")
+    validate.add_argument("--spots", type=int, default=2000)
+    return ap, data, train, validate
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models", nargs="+", help="marginal models (paths or names in models/)")

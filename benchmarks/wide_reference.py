@@ -24,9 +24,6 @@ against 1.050x), so the margin speeds the learning but does not move where it en
 
 from __future__ import annotations
 
-import argparse
-import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -84,12 +81,7 @@ def module(margin: int, k: int = 16, conv=(16, 16), kernel: int = 5, trunk=(32,)
             with torch.no_grad():
                 self.pool.weight.mul_(0.1)
                 self.pool.bias.zero_()
-            dims = (k, *trunk)
-            mods = []
-            for a, b in zip(dims[:-1], dims[1:]):
-                mods += [nn.Linear(a, b), nn.Tanh()]
-            mods.append(nn.Linear(dims[-1], 1))
-            self.trunk = nn.Sequential(*mods)
+            self.trunk = hypertrain.tanh_mlp((k, *trunk), 1)
 
         def forward(self, u, rw, lf):
             pr = P * rw
@@ -133,27 +125,14 @@ def fit(data: dict, monitor: dict, margin: int, epochs: int, lr: float = 2e-3, b
     tr = _tensors(data["marg"], refw, data["y"])
     pairs = refdata.MarginalPairs(data["marg"], refw[:, margin:margin + P], data["y"], None, None)
     wt = hypertrain.loss_weights(pairs, 1.0)
-    n = len(data["marg"])
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    steps = epochs * math.ceil(n / batch)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
-    g = torch.Generator().manual_seed(16)
-    best, state, t0 = math.inf, None, time.perf_counter()
-    for ep in range(epochs):
-        perm = torch.randperm(n, generator=g)
-        for a in range(0, n, batch):
-            idx = perm[a:a + batch]
-            loss = (wt[idx] * (net(tr[0][idx], tr[1][idx], tr[2][idx]) - tr[3][idx]) ** 2).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-        err = float(np.abs(predict(net, monitor["marg"], mon_refw) - monitor["y"][:, 0]).mean())
-        if err < best:
-            best, state = err, {kk: v.clone() for kk, v in net.state_dict().items()}
-        log(f"epoch {ep:3d} monitor {err:.5f} px ({time.perf_counter() - t0:.0f} s)", flush=True)
-    net.load_state_dict(state)
+
+    def loss_of(idx):
+        return (wt[idx] * (net(tr[0][idx], tr[1][idx], tr[2][idx]) - tr[3][idx]) ** 2).mean()
+
+    def monitor_err():
+        return float(np.abs(predict(net, monitor["marg"], mon_refw) - monitor["y"][:, 0]).mean())
+
+    hypertrain.adam_cosine(net, len(data["marg"]), loss_of, monitor_err, epochs, lr, batch, 16, log)
     return net
 
 
@@ -186,20 +165,11 @@ def validate(wide_path, control_path, spots: int) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    a = sub.add_parser("data")
-    a.add_argument("dir", type=Path)
-    a.add_argument("--spots", type=int, default=400000)
-    t = sub.add_parser("train")
-    t.add_argument("dir", type=Path)
-    t.add_argument("out", type=Path)
-    t.add_argument("--epochs", type=int, default=40)
+    from marginal_validation import experiment_cli
+    ap, _, t, v = experiment_cli(__doc__, spots=400000, epochs=40)
     t.add_argument("--control", action="store_true", help="read the reference inside the field only")
-    v = sub.add_parser("validate")
     v.add_argument("wide", type=Path)
     v.add_argument("control", type=Path)
-    v.add_argument("--spots", type=int, default=2000)
     args = ap.parse_args(argv)
     if args.cmd == "data":
         args.dir.mkdir(parents=True, exist_ok=True)

@@ -98,6 +98,17 @@ def shift_matrices(p: int, shifts) -> np.ndarray:
     return out
 
 
+def tanh_mlp(widths, outputs: int):
+    """``torch`` ``Sequential``: tanh layers through ``widths`` (input first), then a linear
+    layer to ``outputs`` (the trunk of every hyper network here)."""
+    from torch import nn
+    mods = []
+    for a, b in zip(widths[:-1], widths[1:]):
+        mods += [nn.Linear(a, b), nn.Tanh()]
+    mods.append(nn.Linear(widths[-1], outputs))
+    return nn.Sequential(*mods)
+
+
 def _torch_module(spec: HyperSpec):
     import torch
     from torch import nn
@@ -131,12 +142,7 @@ def _torch_module(spec: HyperSpec):
                 self.tgain = nn.Parameter(torch.zeros(j))     # exponent a_j: z_j * N^a_j ... (scaled)
                 self.tscale = nn.Parameter(torch.full((j,), 1.0))
                 self.tbias = nn.Parameter(torch.zeros(j))
-            trunk = (k + j, *spec.trunk)
-            mods = []
-            for a, b in zip(trunk[:-1], trunk[1:]):
-                mods += [nn.Linear(a, b), nn.Tanh()]
-            mods.append(nn.Linear(trunk[-1], 1))
-            self.trunk = nn.Sequential(*mods)
+            self.trunk = tanh_mlp((k + j, *spec.trunk), 1)
 
         def _conv_hyper(self, spec):
             """Shift-equivariant filters: tanh convolutions over the reference's pixels
@@ -234,26 +240,40 @@ def fit(spec: HyperSpec, data, monitor, log=print, time_budget_s=None):
     net = _torch_module(spec)
     tr, mon = _tensors(data), _tensors(monitor)
     wt = loss_weights(data, spec.weight_power)
-    n = tr[0].shape[0]
-    g = torch.Generator().manual_seed(spec.seed)
-    opt = torch.optim.Adam(net.parameters(), lr=spec.lr)
-    steps = spec.epochs * math.ceil(n / spec.batch)
+
+    def loss_of(idx):
+        return (wt[idx] * (net(tr[0][idx], tr[1][idx], tr[2][idx]) - tr[3][idx]) ** 2).mean()
+
+    hist = adam_cosine(net, tr[0].shape[0], loss_of, lambda: _mae(net, mon), spec.epochs,
+                       spec.lr, spec.batch, spec.seed, log, time_budget_s)
+    return net, hist
+
+
+def adam_cosine(net, n: int, loss_of, monitor, epochs: int, lr: float, batch: int, seed: int,
+                log=print, time_budget_s=None) -> list[dict]:
+    """The training loop of the networks here: Adam, a cosine learning rate down to 2 % over
+    ``epochs`` of ``n`` samples in shuffled batches (``torch`` generator seeded ``seed``),
+    ``loss_of(idx)`` the batch's loss (a scalar tensor), ``monitor()`` the error to keep the
+    best weights by (loaded at the end). Returns one record an epoch."""
+    import torch
+    g = torch.Generator().manual_seed(seed)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    steps = epochs * math.ceil(n / batch)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda k: 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(k, steps) / steps)))
     best, best_state, hist, t0 = math.inf, None, [], time.perf_counter()
-    for ep in range(spec.epochs):
+    for ep in range(epochs):
         perm = torch.randperm(n, generator=g)
         tot = 0.0
-        for a in range(0, n, spec.batch):
-            idx = perm[a:a + spec.batch]
-            out = net(tr[0][idx], tr[1][idx], tr[2][idx])
-            loss = (wt[idx] * (out - tr[3][idx]) ** 2).mean()
+        for a in range(0, n, batch):
+            idx = perm[a:a + batch]
+            loss = loss_of(idx)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
             tot += float(loss.detach()) * idx.numel()
-        err = _mae(net, mon)
+        err = monitor()
         if err < best:
             best, best_state = err, {k: v.clone() for k, v in net.state_dict().items()}
         hist.append({"epoch": ep, "train_mse": tot / n, "monitor_mae_px": err,
@@ -262,7 +282,7 @@ def fit(spec: HyperSpec, data, monitor, log=print, time_budget_s=None):
         if time_budget_s is not None and hist[-1]["seconds"] > time_budget_s:
             break
     net.load_state_dict(best_state)
-    return net, hist
+    return hist
 
 
 def n_weights(net) -> dict:
