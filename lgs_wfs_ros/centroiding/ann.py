@@ -667,15 +667,14 @@ class ANN(Centroider):
             z, safe = kernels.hyper_contract(flat, f, b)
             names = self.meta["hyper_trunk"]
             out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
-            total = safe[:, 0]
         else:
-            x = np.ascontiguousarray(flat, dtype=np.float32)
-            out = self.session.run(None, {self.input_name: x, **self.cond[1]})[0]
-            total = x.sum(axis=1)
+            feed = {self.input_name: np.ascontiguousarray(flat, dtype=np.float32), **self.cond[1]}
+            out = self.session.run(None, feed)[0]
         if out.shape != (self.n, 2):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 2)}")
+        total = flat.sum(axis=1)
         with np.errstate(invalid="ignore"):
-            ok = np.isfinite(total) & (flat.sum(axis=1) > 0)
+            ok = np.isfinite(total) & (total > 0)
         out = np.asarray(out, dtype=np.float64) * self.meta["output_scale"]
         return self.finish(self._block_axes(out), ok)
 
