@@ -28,6 +28,8 @@ and ``benchmarks/accuracy.md``); ``benchmarks/run.py`` runs it too. ``--long``: 
 mode's cases at the full mode's 700 + 700 frames, for the estimators the "done when" criteria
 name (``LONG_ESTIMATORS``), no Table 3; writes ``accuracy_long.json`` / ``accuracy_long.md``
 and leaves the docs alone. ``--jobs N`` runs N cases at a time (one process each).
+``--only cog,LABEL,...`` runs those estimators alone on the same (seeded) frames and merges
+them into the mode's stored result, refusing unless the CRB and cog scores agree.
 """
 
 from __future__ import annotations
@@ -60,7 +62,8 @@ ALTITUDE_S = 0.05                                  # the altitude tracker's time
 #: label -> (algorithm, options over the table's defaults)
 ESTIMATORS = {
     "cog": ("cog", {}),
-    "cog_pupil": ("cog", {"bias": "pupil"}),
+    "cog_pupil": ("cog", {"bias": "pupil"}),         # its response inverted (linearize)
+    "cog_offset": ("cog", {"bias": "pupil", "linearize": False}),   # the bias alone
     "cmf": ("cmf", {}),                              # the grid of filters (filters=auto)
     "cmf_single": ("cmf", {"filters": "single"}),    # one linearised filter at the reference
     "ml": ("ml", {}),                                # polar only (refused on cartesian)
@@ -75,10 +78,10 @@ ESTIMATORS = {
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),
 }
-QUICK_ESTIMATORS = ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "corr", "ann_pupil", "ann_marg",
+QUICK_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "corr", "ann_pupil", "ann_marg",
                     "ann_hyper", "ann_conv", "ml_alt", "cmf_alt")
 #: the estimators issue 14's and 15's "done when" name, for --long
-LONG_ESTIMATORS = ("cog", "cog_pupil", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ann_conv",
+LONG_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ann_conv",
                    "ml_alt", "cmf_alt")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
@@ -343,7 +346,9 @@ def _case(args):
 
 
 def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = False,
-         jobs: int = 1) -> dict:
+         jobs: int = 1, only: tuple = ()) -> dict:
+    """Run the mode's cases; with ``only`` (labels, ``cog`` among them), run those
+    estimators alone and merge them into the mode's stored result (:func:`merge`)."""
     t_start = time.time()
     if long:
         warm, scored, cases, labels, t3_frames = 700, 700, quick_cases(), LONG_ESTIMATORS, 0
@@ -351,6 +356,15 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         warm, scored, cases, labels, t3_frames = 210, 140, quick_cases(), QUICK_ESTIMATORS, 1400
     else:
         warm, scored, cases, labels, t3_frames = 700, 700, full_cases(), tuple(ESTIMATORS), 7000
+    name = "accuracy_long" if long else "accuracy"
+    stored = None
+    if only:
+        unknown = [lb for lb in only if lb not in ESTIMATORS]
+        if unknown or "cog" not in only:
+            raise SystemExit(f"--only: labels of ESTIMATORS, cog among them (it checks that the "
+                             f"frames are the stored run's); got {', '.join(only)}")
+        stored = json.loads((out_dir / f"{name}.json").read_text())
+        labels = tuple(only)
     what = (f"{warm} warm-up + {scored} scored frames at 700 Hz per case, full pupil "
             f"(2,784 subapertures), photons {', '.join(f'{p:g}' for p in PHOTONS)}, "
             f"side launch {SIDE_LAUNCH_M:g} m off axis, AR(1) tilts {AR1_RHO} per frame "
@@ -359,7 +373,8 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
                                               for lb in labels))
     mode = "long" if long else "quick" if quick else "full"
     out = {"mode": mode, "what": what, "cases": [], "table3": []}
-    name = "accuracy_long" if long else "accuracy"
+    if stored is not None:
+        name += "_only"                                   # partial results beside the stored
     tasks = [(fam, det, launch, tilt, warm, scored, labels) for fam, det, launch, tilt in cases]
     if jobs > 1:
         import multiprocessing
@@ -371,20 +386,64 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         for t in tasks:
             out["cases"].append(run_case(*t, log=log))
             _save(out, out_dir, t_start, name)
-    if long:
-        return out
-    for det in ("polar", "cartesian"):
-        c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, crb_samples=50,
-                     log=log, single=True)
-        c["paper_ann_over_cog"] = PAPER_T3[det]
-        out["table3"].append(c)
-    _save(out, out_dir, t_start)
-    write_docs(out)
+    if not long:
+        for det in ("polar", "cartesian"):
+            c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels,
+                         crb_samples=50, log=log, single=True)
+            c["paper_ann_over_cog"] = PAPER_T3[det]
+            out["table3"].append(c)
+    if stored is not None:
+        out["seconds"] = round(time.time() - t_start, 1)
+        (out_dir / f"{name}.json").unlink(missing_ok=True)
+        (out_dir / f"{name}.md").unlink(missing_ok=True)
+        out = merge(stored, out, labels)
+        name = name[:-len("_only")]
+    _save(out, out_dir, t_start, name)
+    if not long:
+        write_docs(out)
     return out
 
 
+def _key(c: dict) -> tuple:
+    return c["family"], c["detector"], c["launch_m"], c["tilts"]
+
+
+def merge(stored: dict, new: dict, labels: tuple) -> dict:
+    """``stored`` with ``labels``' scores and CPU times replaced (or added) by ``new``'s, a
+    run of the same mode on the same frames: every case's CRB and cog scores must agree to
+    1e-9 (the frames are seeded), or this refuses. The run's time is kept in ``merged``."""
+    if stored["mode"] != new["mode"]:
+        raise SystemExit(f"merge: the stored result is {stored['mode']}, this run {new['mode']}")
+    for part in ("cases", "table3"):
+        fresh = {_key(c): c for c in new[part]}
+        if set(fresh) != {_key(c) for c in stored[part]}:
+            raise SystemExit(f"merge: the stored {part} are not this run's")
+        for c in stored[part]:
+            f = fresh[_key(c)]
+            for ph, row in c["photons"].items():
+                same = (math.isclose(c["crb"][ph]["mean_2d_mas"], f["crb"][ph]["mean_2d_mas"],
+                                     rel_tol=1e-9)
+                        and math.isclose(row["cog"]["mean_2d_mas"],
+                                         f["photons"][ph]["cog"]["mean_2d_mas"], rel_tol=1e-9))
+                if not same:
+                    raise SystemExit(f"merge: {_key(c)} at {ph} ph: other frames than the stored "
+                                     f"run's (CRB or cog differ); rerun the whole benchmark")
+                row.update({lb: f["photons"][ph][lb] for lb in labels if lb in f["photons"][ph]})
+                # the stored order of columns, new labels after
+                c["photons"][ph] = {lb: row[lb] for lb in ESTIMATORS if lb in row}
+            c["cpu_ms"].update({lb: f["cpu_ms"][lb] for lb in labels if lb in f["cpu_ms"]})
+    defs = "; ".join(f"{lb} = {ESTIMATORS[lb][0]} {ESTIMATORS[lb][1] or ''}" for lb in labels)
+    stored.setdefault("merged", []).append(
+        {"labels": list(labels), "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+         "seconds": new["seconds"]})
+    stored["what"] += (f" [rerun on the same frames {stored['merged'][-1]['utc']} UTC and "
+                       f"merged: {defs}]")
+    return stored
+
+
 def _save(out: dict, out_dir: Path, t_start: float, name: str = "accuracy") -> None:
-    out["seconds"] = round(time.time() - t_start, 1)
+    if "merged" not in out:                              # a merge keeps the stored run's
+        out["seconds"] = round(time.time() - t_start, 1)
     cpu = {}
     for c in out["cases"]:
         for lb, v in c["cpu_ms"].items():
@@ -491,6 +550,9 @@ if __name__ == "__main__":
                     help="the quick cases at 700 + 700 frames for the 'done when' estimators "
                          "(accuracy_long.json / .md; the docs are left alone)")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at a time (processes)")
+    ap.add_argument("--only", default="", metavar="LABELS",
+                    help="comma-separated estimators (cog among them) run alone on the mode's "
+                         "frames and merged into its stored json / md (and docs, quick)")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
     ap.add_argument("--record", default="", metavar="LABEL",
@@ -510,5 +572,6 @@ if __name__ == "__main__":
             allres.setdefault("areas", {})["accuracy"] = {"rows": rows(res), "seconds": res["seconds"]}
             results.write_text(json.dumps(allres, indent=2) + "\n")
     else:
-        main(args.quick, long=args.long, jobs=args.jobs)
+        main(args.quick, long=args.long, jobs=args.jobs,
+             only=tuple(x for x in args.only.split(",") if x))
     print((HERE / ("accuracy_long.md" if args.long else "accuracy.md")).read_text())

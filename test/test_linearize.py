@@ -46,6 +46,38 @@ def test_outside_the_box_and_nan_rows():
     assert np.isfinite(est[2]).all()
 
 
+@pytest.mark.parametrize("use_kernel", [True, False])
+def test_offset_fallback_and_a_row_whose_response_cannot_be_measured(use_kernel):
+    """A row with no reading at some scanned shifts (a spot leaving the field) fits to NaN
+    without breaking the others; ``outside="offset"`` returns ``m - f(0)`` where the
+    solution leaves the box (a CoG's bias removed) and inverts as usual inside it."""
+    if use_kernel and not kernels.AVAILABLE:
+        pytest.skip("numba (the fast extra) not installed")
+    offset = np.array([[3.0, -2.0], [0.5, 0.25], [-1.0, 1.0]])
+
+    def resp(s):
+        out = response(s) + offset
+        out[1, :] = np.where(s[1, 0] > 0.5, np.nan, out[1, :])     # row 1: no reading there
+        return out
+    rm = ResponseMap.fit(resp, 3, extent=1.1, points=10, degree=6)
+    rm.use_kernel = use_kernel
+    assert np.isnan(rm.coef[1]).all() and np.isfinite(rm.coef[[0, 2]]).all()
+    inside = np.array([[0.3, -0.2], [0.1, 0.1], [-0.5, 0.4]])
+    m = resp(inside)
+    m[1] = [0.6, 0.35]
+    est, _ = rm.invert(m, outside="offset")
+    np.testing.assert_allclose(est[[0, 2]], inside[[0, 2]], atol=1e-4)
+    assert np.isnan(est[1]).all()
+    far = np.array([[9.0, -8.0], [0.0, 0.0], [-1.0, 1.0]])         # row 0 far outside
+    est, jac = rm.invert(far, outside="offset")
+    np.testing.assert_allclose(est[0], far[0] - offset[0], atol=1e-4)
+    np.testing.assert_array_equal(jac[0], np.eye(2))
+    np.testing.assert_allclose(est[2], [0.0, 0.0], atol=1e-4)      # inside: inverted
+    np.testing.assert_array_equal(rm.invert(far)[0][0], far[0])   # the default: raw
+    with pytest.raises(ValueError, match="outside"):
+        rm.invert(far, outside="clip")
+
+
 def test_covariance_transform():
     jac = np.array([[[2.0, 0.0], [0.0, 0.5]]])
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]]])

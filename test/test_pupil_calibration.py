@@ -142,6 +142,47 @@ def test_trend_follows_a_drifting_profile_without_lag():
         PupilCalibration(s, trend="yes")
 
 
+@pytest.mark.parametrize("detector,launch", [("polar", 0.0), ("cartesian", 16.0)])
+def test_linearised_cog_reads_the_shift_of_spots_the_field_truncates(detector, launch):
+    """A layer at 100-105 km puts the spots at the field's edge, where a CoG reads less than
+    the shift: calibrated on one noise-free frame, the CoG with its response inverted reads
+    noise-free shifted spots to 0.06 px where the field keeps 95 % of the light, and cuts the
+    error of the bias alone by a third or more where the field loses 5-50 % (the rest: the
+    profile's tail, fitted from fewer subapertures); the response at zero shift is the bias."""
+    s = SMALL.replace(detector=detector, launch_xy_m=(launch, 0.0))
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    lin = table.build("cog", s, {"bias": "pupil", "pupil_period": 3})
+    off = table.build("cog", s, {"bias": "pupil", "pupil_period": 3, "linearize": False})
+    zero, lost = sm.images(np.zeros((n, 2)))
+    zero = zero * 1000.0
+    for c in (lin, off):                       # a refit at the 3rd frame, none at the 4th, 5th
+        for _ in range(3):
+            c.centroid(zero)
+        assert c.pupil.fits == 1
+    dark = lost > 0.5          # side launch: spots mostly beyond the field are not scored
+    assert (lost[~dark] > 0.2).sum() > 20
+    f0 = lin.pupil.cog_response().at_zero()
+    assert np.abs(f0 - lin.pupil.cog_bias())[~dark].max() < 0.01
+    shift = np.random.default_rng(5).uniform(-0.9, 0.9, (n, 2))          # detector axes
+    img = sm.images(shift)[0] * 1000.0
+    err_lin = lin.centroid(img) - shift
+    err_off = off.centroid(img) - shift
+    assert np.isfinite(err_lin[~dark]).all()
+    whole, cut = lost < 0.05, ~dark & (lost >= 0.05)
+    assert np.abs(err_lin[whole]).max() < 0.06 and np.abs(err_lin[cut]).max() < 0.12
+    assert np.median(np.abs(err_lin[cut])) < 0.7 * np.median(np.abs(err_off[cut]))
+    assert np.abs(err_off[~dark]).max() > 0.2
+    # beyond the scanned box (+-1.4 px) it falls back on the bias alone, not the raw CoG
+    far = np.zeros((n, 2))
+    far[:, 0] = 2.0
+    img = sm.images(far)[0] * 1000.0
+    err_far = np.abs(lin.centroid(img) - far)[~dark]
+    err_far_off = np.abs(off.centroid(img) - far)[~dark]
+    assert err_far.max() < 2.0 and np.median(err_far) < np.median(err_far_off) + 0.02
+    assert lin.pupil.fits == 1
+
+
 def test_projection_is_linear_and_keeps_light():
     s = SMALL.replace(detector="cartesian")
     lay = geometry.layout(s)

@@ -30,13 +30,17 @@ class CoG(Centroider):
             CoG of each subaperture's reference spot rendered from the sodium profile
             estimated from the whole pupil (:mod:`.pupil`), i.e. the bias the profile
             implies, refreshed every ``pupil_period`` frames.
+        linearize: with ``bias="pupil"``, invert the CoG's whole response to a shift of
+            the calibrated spot (:meth:`.pupil.PupilCalibration.cog_response`: its bias,
+            and the gain lost where the field's edge truncates the spot) instead of
+            subtracting the bias alone (True).
         pupil_period, pupil_time_constant_s, pupil_stride, pupil_trend: the calibration's
             refit period (frames), memory (s), accumulation stride (frames) and drift
             extrapolation (:class:`.pupil.PupilCalibration`), for ``bias="pupil"``.
     """
 
     name = "cog"
-    _allowed = ("background", "bias", *pupil_cal.OPTION_DEFAULTS)
+    _allowed = ("background", "bias", *pupil_cal.OPTION_DEFAULTS, "linearize")
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
@@ -45,12 +49,21 @@ class CoG(Centroider):
             options.setdefault("bias", "none")
             for k, v in pupil_cal.OPTION_DEFAULTS.items():
                 options.setdefault(k, v)
+        if "linearize" in self._allowed:
+            options.setdefault("linearize", True)
+            if not isinstance(options["linearize"], (bool, np.bool_)):
+                raise ValueError(f"option linearize must be true or false, got "
+                                 f"{options['linearize']!r}")
         super().__init__(sensor, **options)
         self.background = number("background", options["background"], minimum=0)
         self.pupil = None
+        self._response = None
         if choice("bias", options.get("bias", "none"), ("none", "pupil")) == "pupil":
             self.pupil = pupil_cal.from_options(sensor, options, self.background)
             self._bias = self.pupil.cog_bias()
+            if options.get("linearize", False):
+                self.pupil.want_response = True
+                self._response = self.pupil.cog_response()
         x, y = pixel_coords(self.p, self.centre)
         self._xy = np.stack([x, y], axis=1)                   # (p*p, 2)
         self._xy32 = self._xy.astype(np.float32)
@@ -86,7 +99,14 @@ class CoG(Centroider):
                 seen = self.pupil.observe(flat, ok)
             if seen:
                 self._bias = self.pupil.cog_bias()
-            out -= self._bias
+                if self._response is not None:
+                    self._response = self.pupil.cog_response()
+            if self._response is None:
+                out -= self._bias
+            else:
+                # smooth: one Newton step; beyond the scanned box the bias alone (raw
+                # would keep it: px on a layer far from h_ref)
+                out = self._response.invert(out, iterations=1, outside="offset")[0]
         return self.finish(out, ok)
 
     def centroid_many(self, frames) -> np.ndarray:
@@ -109,6 +129,8 @@ class CoG(Centroider):
         if self.pupil is not None:
             self.pupil.reset()
             self._bias = self.pupil.cog_bias()
+            if self._response is not None:
+                self._response = self.pupil.cog_response()
 
     def describe(self) -> dict:
         d = super().describe()

@@ -40,7 +40,8 @@ from ..optics import fast_frames, geometry
 from ..optics.model_spot import shift_to_detector
 from .base import check_options, number
 from .cmf import CMF, FILTERS, GRID_DEFAULTS, solve_filter
-from .cog import CoG, TabledCoG
+from . import pupil as pupil_cal
+from .cog import TabledCoG
 
 #: shift of the central differences that give each reference's derivatives, px
 DERIVATIVE_STEP = 0.01
@@ -65,7 +66,7 @@ class GMF(TabledCoG):
 
     name = "gmf"
     _public = ("background", "spacing_px", "grid", "picks", "read_noise_e", "var_floor",
-               *CoG._allowed[2:])
+               *pupil_cal.OPTION_DEFAULTS)
     _allowed = (*_public, "bias")            # CoG's, which this sets to "pupil" itself
 
     def __init__(self, sensor, **options):

@@ -154,7 +154,8 @@ def _filter_flux_impl(frame, origins, p, weights, out):
         out[b, 2] = tot
 
 
-def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_out, jac_out):
+def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_out, jac_out,
+                          inside_out):
     # coef (n, 2, D, D) [out, x degree, y degree]; guess (n, K, 2) monomials x^i y^(d-i)
     n = m.shape[0]
     nd = coef.shape[3]
@@ -242,7 +243,9 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             sx = sx - (j11 * r0 - j01 * r1) / det
             sy = sy - (j00 * r1 - j10 * r0) / det
         det = j00 * j11 - j01 * j10
-        if abs(sx) <= extent and abs(sy) <= extent and det > min_det:
+        inside = abs(sx) <= extent and abs(sy) <= extent and det > min_det
+        inside_out[b] = inside
+        if inside:
             s_out[b, 0] = sx
             s_out[b, 1] = sy
             jac_out[b, 0, 0] = j00
@@ -637,9 +640,10 @@ def filter_flux(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
 
 
 def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m: np.ndarray,
-                    iterations: int, min_det: float) -> tuple[np.ndarray, np.ndarray]:
-    """Shifts ``s (n, 2)`` px with ``f(s) = m`` and ``df/ds (n, 2, 2)`` there, as
-    :meth:`.linearize.ResponseMap.invert` (float64 throughout).
+                    iterations: int, min_det: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shifts ``s (n, 2)`` px with ``f(s) = m``, ``df/ds (n, 2, 2)`` there and ``inside (n,)``
+    bool (False where ``m`` was returned), as :meth:`.linearize.ResponseMap.invert` (float64
+    throughout).
 
     Args:
         coef: ``(n, 2, D, D)`` float64 Chebyshev coefficients (output, x degree, y degree)
@@ -659,9 +663,10 @@ def invert_response(coef: np.ndarray, extent: float, guess: np.ndarray | None, m
         gdeg = int(round((np.sqrt(8 * guess.shape[1] + 1) - 3) / 2))
     s = np.empty((n, 2))
     jac = np.empty((n, 2, 2))
+    inside = np.empty(n, dtype=np.bool_)
     _invert_response(coef, float(extent), guess, gdeg, m, max(int(iterations), 1),
-                     float(min_det), s, jac)
-    return s, jac
+                     float(min_det), s, jac, inside)
+    return s, jac, inside
 
 
 def block_marginals(frame: np.ndarray, origins: np.ndarray, p: int,

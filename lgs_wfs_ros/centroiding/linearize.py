@@ -123,22 +123,43 @@ class ResponseMap:
                         np.einsum("nki,in->nk", cdy, tx)], axis=2) / self.extent
         return f.astype(np.float64), jac.astype(np.float64)
 
-    def invert(self, m: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    def invert(self, m: np.ndarray, iterations: int = 2,
+               outside: str = "raw") -> tuple[np.ndarray, np.ndarray]:
         """Shifts ``s (n, 2)`` px with ``f(s) = m`` and the Jacobian ``df/ds (n, 2, 2)`` there.
 
-        Outside the calibrated box, or where the response has folded (gain below
-        ``MIN_GAIN``), the raw measurement is returned unchanged (Jacobian = identity).
         Starts from a low-degree polynomial fit of the inverse (a few 0.01 px off in the
         corners) and takes ``iterations`` Newton steps on the fitted forward response
-        (quadratic convergence: one step reaches ~1e-4 px). The start is kept in the
-        calibrated box; a measurement outside the calibrated response is extrapolated
-        linearly from the box edge. NaN rows stay NaN.
+        (quadratic convergence: one step reaches ~1e-4 px); the start is kept in the
+        calibrated box. Where the solution falls outside the box, or the response has
+        folded (gain below ``MIN_GAIN``), ``outside`` decides: ``"raw"`` returns the
+        measurement unchanged (a filter whose raw reading is already about the shift),
+        ``"offset"`` the measurement less the response at 0, ``m - f(0)`` (an estimator with
+        a large offset, such as a CoG's bias: its gain there is unknown, the offset is not);
+        the Jacobian is the identity either way. NaN rows stay NaN.
         """
+        if outside not in ("raw", "offset"):
+            raise ValueError(f"outside must be 'raw' or 'offset', got {outside!r}")
         m = np.asarray(m, dtype=float)
         if self.use_kernel:
             guess = None if self.guess is None else np.ascontiguousarray(self.guess, dtype=float)
-            return kernels.invert_response(self._coef64, self.extent, guess, m, iterations,
-                                           MIN_GAIN ** 2)
+            s, jac, inside = kernels.invert_response(self._coef64, self.extent, guess, m,
+                                                     iterations, MIN_GAIN ** 2)
+        else:
+            s, jac, inside = self._invert_numpy(m, iterations)
+        if outside == "offset" and not inside.all():
+            out = ~inside
+            s[out] = m[out] - self.at_zero()[out]
+        return s, jac
+
+    def at_zero(self) -> np.ndarray:
+        """``f(0) (n, 2)``, px (cached)."""
+        if getattr(self, "_zero", None) is None:
+            self._zero = self.forward(np.zeros((self.coef.shape[0], 2)))[0]
+        return self._zero
+
+    def _invert_numpy(self, m: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray,
+                                                                      np.ndarray]:
+        """:meth:`invert`'s steps vectorised in numpy (no numba): ``(s, jac, inside)``."""
         lim = self.extent
         s = m if self.guess is None else _eval_inverse(self.guess, m)
         s = np.clip(np.nan_to_num(s), -lim, lim)
@@ -149,7 +170,7 @@ class ResponseMap:
         inside = (np.abs(s) <= lim).all(axis=1) & (det > MIN_GAIN ** 2)
         s = np.where(inside[:, None], s, m)
         jac = np.where(inside[:, None, None], jac, np.eye(2))
-        return s, jac
+        return s, jac, inside
 
 
 GUESS_DEGREE = 5
@@ -169,9 +190,13 @@ def _monomials(m: np.ndarray, degree: int) -> np.ndarray:
 def _fit_inverse(resp: np.ndarray, grid: np.ndarray, degree: int) -> np.ndarray:
     """``(n, K, 2)`` least-squares polynomial ``s = P(m)`` from responses ``(n, G, 2)``
     to the scanned shifts ``grid (G, 2)``."""
-    v = _monomials(np.nan_to_num(resp), degree)                              # (n, G, K)
-    vtv = np.einsum("ngk,ngl->nkl", v, v) + 1e-12 * np.eye(v.shape[-1])
-    return np.linalg.solve(vtv, np.einsum("ngk,gj->nkj", v, grid))
+    bad = ~np.isfinite(resp).all(axis=(1, 2))          # e.g. a spot that leaves the field
+    v = _monomials(np.where(bad[:, None, None], 0.0, resp), degree)          # (n, G, K)
+    vtv = np.einsum("ngk,ngl->nkl", v, v)
+    vtv += (1e-12 * (1.0 + np.trace(vtv, axis1=1, axis2=2)))[:, None, None] * np.eye(v.shape[-1])
+    out = np.linalg.solve(vtv, np.einsum("ngk,gj->nkj", v, grid))
+    out[bad] = np.nan
+    return out
 
 
 def _eval_inverse(coef: np.ndarray, m: np.ndarray) -> np.ndarray:

@@ -36,7 +36,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .cog import CoG, TabledCoG
+from . import pupil as pupil_cal
+from .cog import TabledCoG
 from .base import check_options, number
 from ..optics.model_spot import ProfileSpots
 
@@ -113,7 +114,7 @@ class ML(TabledCoG):
     """
 
     name = "ml"
-    _public = ("background", "step_px", "extent_px", *CoG._allowed[2:])
+    _public = ("background", "step_px", "extent_px", *pupil_cal.OPTION_DEFAULTS)
     _allowed = (*_public, "bias")            # CoG's, which this sets to "pupil" itself
 
     def __init__(self, sensor, **options):

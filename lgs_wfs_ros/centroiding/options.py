@@ -117,6 +117,9 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                  ("bias", "none", "Bias removed from the plain CoG: none (the paper's CoG) or "
                   "pupil (the CoG of each subaperture's spot of the sodium profile estimated "
                   "from the whole pupil).", {"choices": ("none", "pupil")}),
+                 ("linearize", True, "With bias pupil: invert the CoG's calibrated response to "
+                  "a shift (its bias and the gain lost where the field's edge truncates the "
+                  "spot); false: subtract the bias alone."),
                  *_PUPIL),
     "tcog": _rows(
         "tcog",

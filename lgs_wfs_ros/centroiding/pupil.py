@@ -49,6 +49,7 @@ from ..optics.gaussian_spot import FWHM_PER_SIGMA
 from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_density, projected_hats
 from ..optics.sodium import gaussian_profile, harmonic_altitude
 from .base import number
+from .linearize import ResponseMap
 
 
 
@@ -104,6 +105,7 @@ class PupilCalibration:
         self.trend = bool(trend)
         self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
+        self.want_response = False   # a background refit also fits cog_response (set by cog)
         self.payload = None
         self._pool = None
         self._job = None
@@ -154,6 +156,7 @@ class PupilCalibration:
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
         self._bias = None        # (version, cog_bias)
+        self._response = None    # (version, cog_response)
 
     def _prior_light(self, fwhm_m: float) -> np.ndarray:
         """Light per node of a Gaussian layer whose harmonic altitude is h_ref."""
@@ -328,6 +331,8 @@ class PupilCalibration:
             clone.reference()                                # rendered here, not on a frame
         if self.prepare is None or self.altitude_s > 0:      # the CoG bias, the tracker's
             clone.cog_bias()
+        if self.want_response:                               # a linearised CoG's
+            clone.cog_response()
         return clone, payload
 
     def _poll(self) -> bool:
@@ -568,6 +573,28 @@ class PupilCalibration:
         self._bias = (self.version, out)
         return out
 
+    def cog_response(self) -> ResponseMap:
+        """The plain CoG's response to a shift of each reference, fitted over
+        ``+-COG_RESPONSE_EXTENT_PX`` (block axes; :class:`.linearize.ResponseMap`): its
+        value at 0 is :meth:`cog_bias`, its slope the gain the field's edge takes (a spot
+        truncated by the field reads less than its shift). Cached per refit; a background
+        refit fits it off the frame path when ``want_response``."""
+        if self._response is not None and self._response[0] == self.version:
+            return self._response[1]
+        spots = self.spots()
+        p = self.sensor.pixels
+        y, x = np.indices((p, p), dtype=float)
+        w = np.stack([np.ones(p * p), x.ravel() - (p - 1) / 2, y.ravel() - (p - 1) / 2], axis=1)
+
+        def measure(shift):
+            m = spots.image_at(shift).reshape(self.n, -1) @ w                  # (n, 3)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return m[:, 1:] / m[:, :1]
+        points, degree = COG_RESPONSE_GRID
+        out = ResponseMap.fit(measure, self.n, COG_RESPONSE_EXTENT_PX, points, degree)
+        self._response = (self.version, out)
+        return out
+
     def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy, flux)``: the reference in counts (the observed mean flux of
         each subaperture, ``sensor.photons`` before the first fit), background not included;
@@ -603,8 +630,15 @@ FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of t
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
-              "_bias", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough",
+              "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough",
               "_spread")
+
+# The CoG's response (cog_response): scanned over +-1.4 px per block axis (3 sigma of the
+# shifts a closed loop leaves, 0.46 px rms per axis; a corner, rotated to the detector's
+# axes, stays inside the spots' 2 px margin; beyond it the fit is extrapolated linearly) on
+# an 8 x 8 Chebyshev grid, degree 6 per axis (64 renders a refit).
+COG_RESPONSE_EXTENT_PX = 1.4
+COG_RESPONSE_GRID = (8, 6)
 
 # Options every estimator that uses the calibration takes (names as in options.py).
 OPTION_DEFAULTS = {"pupil_period": 140, "pupil_time_constant_s": 0.3, "pupil_stride": 1,
