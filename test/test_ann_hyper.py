@@ -54,11 +54,11 @@ def linear_hyper_model(path, hyper=True, inp="marginals"):
 
 def test_linear_hyper_model_is_the_pupil_calibrated_cog(tmp_path):
     """Through refits (period 3), on frames and stacks, ann with the linear hyper model equals
-    cog with bias = pupil: the refit part gets the calibration's references when it refits."""
+    cog with bias = pupil (its bias alone, linearize false): the refit part gets the calibration's references when it refits."""
     sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(linear_hyper_model(tmp_path / "h.onnx")), **pup})
-    cog = options.build("cog", sensor, {"bias": "pupil", **pup})
+    cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     plain = options.build("cog", sensor, {})
     assert ann._refit is not None and set(ann.cond[1]) == {"filters", "fbias"}
     lay = geometry.layout(sensor)
@@ -71,7 +71,7 @@ def test_linear_hyper_model_is_the_pupil_calibrated_cog(tmp_path):
     assert ann.describe()["pupil_calibration"]["fits"] == 2
     ann.reset()
     np.testing.assert_allclose(ann.centroid(frames(sensor, 1, seed=5)[0]),
-                               options.build("cog", sensor, {"bias": "pupil", **pup}).centroid(
+                               options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup}).centroid(
                                    frames(sensor, 1, seed=5)[0]), atol=2e-4)
 
 
@@ -182,7 +182,7 @@ def test_pixel_hyper_model_reads_whole_blocks_on_a_cartesian_detector(trunk, tmp
     sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(linear_pixel_hyper_model(tmp_path / "p.onnx", trunk)), **pup})
-    cog = options.build("cog", sensor, {"bias": "pupil", **pup})
+    cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     plain = options.build("cog", sensor, {})
     assert (ann._trunk is not None) == trunk and not ann.marginals
     lay = geometry.layout(sensor)

@@ -67,7 +67,7 @@ def beside_calibrated_cog(sensor, model):
     refitting every 3 frames with no averaging: what a linear model is checked against."""
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     return (options.build("ann", sensor, {"model": str(model), **pup}),
-            options.build("cog", sensor, {"bias": "pupil", **pup}),
+            options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup}),
             options.build("cog", sensor, {}))
 
 

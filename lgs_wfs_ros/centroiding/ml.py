@@ -26,7 +26,9 @@ the best grid point and its neighbours. A climb that reaches the table's edge (a
 stacks) numpy scans the whole grid (~6 ms a full frame instead of ~0.6 ms).
 
 Measured on unseen profile families (``benchmarks/bench_accuracy.py``, polar): 1.00-1.08x the
-Cramer-Rao bound where the calibrated CoG is at 0.83-2.6x and the default CMF at 1.15-3.2x.
+Cramer-Rao bound where the calibrated CoG with its bias alone was at 0.83-2.6x (1.0-1.5x
+with its response inverted, the default since 2026-11-26) and the single-filter CMF at
+1.15-3.2x.
 On a cartesian detector the spot is not separable in the pixel axes and this estimator is
 refused (use ``gmf``, :mod:`.gmf`, which reads whole blocks).
 """
