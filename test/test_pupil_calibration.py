@@ -419,9 +419,9 @@ def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
 
 
 def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
-    """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts is
-    the inline mode's, refitted from the same frames, computed in the refit's thread (not on
-    the install frame) and cached read-only."""
+    """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts and
+    the response it inverts are the inline mode's, refitted from the same frames, computed in
+    the refit's thread (not on the install frame) and cached (the bias read-only)."""
     s = SMALL.replace(detector="polar")
     n = geometry.layout(s).n_valid
     _, _, sm = true_spots(s, "high")
@@ -434,11 +434,13 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     live.centroid(frames[1])
     live.pupil.wait()
 
-    def no_render():
+    def no_render(*args, **kwargs):
         raise AssertionError("the reference was rendered on the frame path")
     live.pupil.reference_image = no_render           # the thread computed the bias already
+    live.pupil.spots = no_render                     # and the response's scan
     got = live.centroid(frames[2])
-    del live.pupil.reference_image
+    del live.pupil.reference_image, live.pupil.spots
+    assert live._response is live.pupil.cog_response()
     assert live.pupil.fits == 1 and np.abs(live._bias - prior).max() > 0.03
     assert live.pupil.cog_bias() is live._bias and not live._bias.flags.writeable
     np.testing.assert_array_equal(live._bias, inline._bias)
