@@ -5,6 +5,7 @@ import pytest
 
 from lgs_wfs_ros.centroiding import options as table
 from lgs_wfs_ros.centroiding import pupil as pupil_cal
+from lgs_wfs_ros.centroiding.linearize import ResponseMap
 from lgs_wfs_ros.centroiding.pupil import PupilCalibration
 from lgs_wfs_ros.optics import geometry, sodium
 from lgs_wfs_ros.optics.model_spot import Projection, shift_to_detector
@@ -181,6 +182,34 @@ def test_linearised_cog_reads_the_shift_of_spots_the_field_truncates(detector, l
     err_far_off = np.abs(off.centroid(img) - far)[~dark]
     assert err_far.max() < 2.0 and np.median(err_far) < np.median(err_far_off) + 0.02
     assert lin.pupil.fits == 1
+
+
+def test_polar_response_scan_on_the_diagonal_is_the_full_scan():
+    """On polar pixels the CoG along each block axis depends on the shift along it alone:
+    the response fitted from the diagonal's renders is the one the whole grid gives (a
+    side launch and a layer far above h_ref: spots the field cuts)."""
+    s = SMALL.replace(detector="polar", launch_xy_m=(16.0, 0.0))
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    c = table.build("cog", s, {"bias": "pupil", "pupil_period": 1})
+    c.centroid(sm.images(np.zeros((n, 2)))[0] * 1000.0)
+    cal = c.pupil
+    spots, p = cal.spots(), s.pixels
+    y, x = np.indices((p, p), dtype=float)
+    w = np.stack([np.ones(p * p), x.ravel() - (p - 1) / 2, y.ravel() - (p - 1) / 2], axis=1)
+
+    def measure(shift):
+        m = spots.image_at(shift).reshape(n, -1) @ w
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return m[:, 1:] / m[:, :1]
+    full = ResponseMap.fit(measure, n, pupil_cal.COG_RESPONSE_EXTENT_PX,
+                           *pupil_cal.COG_RESPONSE_GRID)
+    fast = cal.cog_response()
+    ok = np.isfinite(full.coef).all(axis=(1, 2, 3))
+    assert ok.sum() > 0.75 * n
+    np.testing.assert_array_equal(np.isfinite(fast.coef).all(axis=(1, 2, 3)), ok)
+    np.testing.assert_allclose(fast.coef[ok], full.coef[ok], atol=1e-9)
+    assert np.abs(full.coef[ok][:, 0, 1:, 0]).max() > 0.05      # a response along x to fit
 
 
 def test_projection_is_linear_and_keeps_light():
