@@ -379,6 +379,35 @@ def test_a_cmf_recorded_before_the_grid_default_replays_as_its_single_filter(tmp
     assert segs["cmf_replay"].description["options"]["filters"] == "single"
 
 
+def test_a_calibrated_cog_recorded_before_its_response_replays_with_its_bias_alone(
+        tmp_path, monkeypatch):
+    """A bag whose cog (bias: pupil) description has no ``linearize`` (recorded when the
+    calibrated CoG subtracted its bias alone) replays that way, giving the live slopes; a
+    bag recorded today replays with the response inverted."""
+    import lgs_wfs_ros.centroiding as centroiding
+    from lgs_wfs_ros.analysis import bagdata, replay
+    from lgs_wfs_ros.centroiding.cog import CoG
+
+    make = centroiding.make_centroider
+    s = SMALL.replace(detector="polar")
+    for old in (True, False):
+        path = tmp_path / f"{old}.mcap"
+        with monkeypatch.context() as m:
+            m.setattr(centroiding, "make_centroider", lambda alg, sensor, **o: make(
+                alg, sensor, bias="pupil", pupil_period=4, linearize=not old, **o))
+            if old:                                   # the old description
+                describe = CoG.describe
+                m.setattr(CoG, "describe", lambda self: {**describe(self), "options": {
+                    k: v for k, v in describe(self)["options"].items() if k != "linearize"}})
+            bagdata.make_sample_bag(path, frames=10, sensor=s, algorithms=("cog",))
+        res = replay.replay_bag(path, ["cog"], out=tmp_path / f"r{old}.mcap", quiet=True)
+        segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / f"r{old}.mcap").segments}
+        np.testing.assert_allclose(segs["cog_replay"].slopes.data, segs["cog"].slopes.data,
+                                   atol=1e-6)
+        assert res["options"]["cog"]["options"].get("linearize", True) is (not old)
+    assert replay.recorded_defaults({"cog": {"bias": "none"}}) == {"cog": {"bias": "none"}}
+
+
 def test_shift_to_detector_rotates_only_on_polar():
     e = np.array([[0.6, 0.8]])
     v = np.array([[1.0, 0.0]])

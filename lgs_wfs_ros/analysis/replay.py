@@ -49,9 +49,8 @@ def _namespaces(algorithms, existing):
 
 def recorded_options(reader, names) -> dict:
     """``{algorithm: options}`` from the bag's centroider descriptions (the last one of each
-    algorithm, in file order), restricted to the options the table knows. A cmf recorded
-    without ``filters`` (before the grid of filters became its default) is the single
-    filter it was live."""
+    algorithm, in file order), restricted to the options the table knows, with the defaults
+    the bag was recorded under (:func:`recorded_defaults`)."""
     from ..centroiding import options as table
     out = {}
     for topic in names["centroider"].values():
@@ -60,9 +59,21 @@ def recorded_options(reader, names) -> dict:
             if alg in table.OPTIONS and isinstance(d.get("options"), dict):
                 known = {o.name for o in table.OPTIONS[alg]}
                 out[alg] = {k: v for k, v in d["options"].items() if k in known}
-    if "cmf" in out and "filters" not in out["cmf"]:
-        out["cmf"]["filters"] = "single"     # recorded before the grid became cmf's default
-    return out
+    return recorded_defaults(out)
+
+
+def recorded_defaults(options: dict) -> dict:
+    """``{algorithm: options}`` recorded under older defaults, completed with them (in
+    place): a cmf without ``filters`` (recorded before the grid of filters became its
+    default) is the single filter it was live; a cog with ``bias: pupil`` and no
+    ``linearize`` (recorded before it inverted its response, 2026-11-26) subtracted the
+    bias alone."""
+    if "cmf" in options and "filters" not in options["cmf"]:
+        options["cmf"]["filters"] = "single"
+    cog = options.get("cog")
+    if cog is not None and cog.get("bias") == "pupil" and "linearize" not in cog:
+        cog["linearize"] = False
+    return options
 
 
 def _plan(algorithms, models, given, recorded):
