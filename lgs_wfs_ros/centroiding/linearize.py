@@ -163,10 +163,11 @@ class ResponseMap:
         lim = self.extent
         s = m if self.guess is None else _eval_inverse(self.guess, m)
         s = np.clip(np.nan_to_num(s), -lim, lim)
-        for _ in range(max(int(iterations), 1)):
-            f, jac = self.forward(s)
-            s = s - _solve2(jac, f - m)
-        det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+        with np.errstate(invalid="ignore", over="ignore"):   # inf/NaN rows stay NaN
+            for _ in range(max(int(iterations), 1)):
+                f, jac = self.forward(s)
+                s = s - _solve2(jac, f - m)
+            det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
         inside = (np.abs(s) <= lim).all(axis=1) & (det > MIN_GAIN ** 2)
         s = np.where(inside[:, None], s, m)
         jac = np.where(inside[:, None, None], jac, np.eye(2))
