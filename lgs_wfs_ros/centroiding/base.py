@@ -283,6 +283,13 @@ def number(name: str, value, *, minimum=None, strict=False, integer=False) -> fl
     return int(value) if integer else float(value)
 
 
+def flag(name: str, value) -> bool:
+    """Validate a true/false option, returning it as bool."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"option {name} must be true or false, got {value!r}")
+    return bool(value)
+
+
 def choice(name: str, value, allowed) -> str:
     if value not in allowed:
         raise ValueError(f"option {name} must be one of {list(allowed)}, got {value!r}")

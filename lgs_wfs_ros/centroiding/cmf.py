@@ -48,7 +48,7 @@ import numpy as np
 
 from ..optics.gaussian_spot import elongation_fwhm_px, model_spots
 from . import kernels
-from .base import Centroider, check_options, choice, number
+from .base import Centroider, check_options, choice, flag, number
 from . import pupil as pupil_cal
 from .linearize import ResponseMap, transform_covariance
 from .reference import ReferenceSource, fourier_derivatives, integer_shift
@@ -207,9 +207,7 @@ class CMF(Centroider):
         super().__init__(sensor, **o)
         self.options["filters"] = "single"
         self.dither = number("dither", o["dither"], minimum=0, strict=True)
-        if not isinstance(o["constrained"], (bool, np.bool_)):
-            raise ValueError(f"option constrained must be true or false, got {o['constrained']!r}")
-        self.constrained = bool(o["constrained"])
+        self.constrained = flag("constrained", o["constrained"])
         self.constraint_px = number("constraint_px", o["constraint_px"], minimum=1, integer=True)
         if self.constraint_px >= self.p:
             raise ValueError(f"option constraint_px must be < {self.p} pixels")
@@ -220,8 +218,7 @@ class CMF(Centroider):
         self.background = number("background", o["background"], minimum=0)
         self.var_floor = number("var_floor", o["var_floor"], minimum=0, strict=True)
         self.derivative = choice("derivative", o["derivative"], ("fourier", "dither"))
-        if not isinstance(o["linearize"], (bool, np.bool_)):
-            raise ValueError(f"option linearize must be true or false, got {o['linearize']!r}")
+        flag("linearize", o["linearize"])
         # a reference that changes every frame (history) or pushed dither derivatives
         # would need a new calibration every frame: linearize applies to fixed references
         self.linearize = bool(o["linearize"]) and o["reference"] != "history" \

@@ -15,7 +15,7 @@ import numpy as np
 from . import kernels
 from . import pupil as pupil_cal
 from ..optics.gaussian_spot import FWHM_PER_SIGMA, elongation_fwhm_px, model_spots
-from .base import Centroider, check_options, choice, number, pixel_coords
+from .base import Centroider, check_options, choice, flag, number, pixel_coords
 
 
 
@@ -50,10 +50,7 @@ class CoG(Centroider):
             for k, v in pupil_cal.OPTION_DEFAULTS.items():
                 options.setdefault(k, v)
         if "linearize" in self._allowed:
-            options.setdefault("linearize", True)
-            if not isinstance(options["linearize"], (bool, np.bool_)):
-                raise ValueError(f"option linearize must be true or false, got "
-                                 f"{options['linearize']!r}")
+            flag("linearize", options.setdefault("linearize", True))
         super().__init__(sensor, **options)
         self.background = number("background", options["background"], minimum=0)
         self.pupil = None
@@ -98,9 +95,7 @@ class CoG(Centroider):
             else:
                 seen = self.pupil.observe(flat, ok)
             if seen:
-                self._bias = self.pupil.cog_bias()
-                if self._response is not None:
-                    self._response = self.pupil.cog_response()
+                self._calibrated()
             if self._response is None:
                 out -= self._bias
             else:
@@ -128,9 +123,13 @@ class CoG(Centroider):
     def reset(self) -> None:
         if self.pupil is not None:
             self.pupil.reset()
-            self._bias = self.pupil.cog_bias()
-            if self._response is not None:
-                self._response = self.pupil.cog_response()
+            self._calibrated()
+
+    def _calibrated(self) -> None:
+        """Take the calibration's current bias and, linearised, its response."""
+        self._bias = self.pupil.cog_bias()
+        if self._response is not None:
+            self._response = self.pupil.cog_response()
 
     def describe(self) -> dict:
         d = super().describe()

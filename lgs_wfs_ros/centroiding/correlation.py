@@ -32,7 +32,7 @@ import numpy as np
 
 from . import kernels
 from . import pupil as pupil_cal
-from .base import Centroider, check_options, choice, number
+from .base import Centroider, check_options, choice, flag, number
 from .cmf import CMF
 from .reference import ReferenceSource
 
@@ -73,9 +73,7 @@ class Correlation(Centroider):
         if self.threshold >= 1:
             raise ValueError(f"option threshold must be in [0, 1), got {self.threshold}")
         self.padding = int(choice("padding", o["padding"], (1, 2)))
-        if not isinstance(o["subtract_min"], (bool, np.bool_)):
-            raise ValueError(f"option subtract_min must be true or false, got {o['subtract_min']!r}")
-        self.subtract_min = bool(o["subtract_min"])
+        self.subtract_min = flag("subtract_min", o["subtract_min"])
         self.background = number("background", o["background"], minimum=0)
         model = None
         if o["reference"] == "model":

@@ -48,7 +48,7 @@ from ..optics import geometry
 from ..optics.gaussian_spot import FWHM_PER_SIGMA
 from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_density, projected_hats
 from ..optics.sodium import gaussian_profile, harmonic_altitude
-from .base import number
+from .base import flag, number
 from .linearize import ResponseMap, chebyshev_nodes
 
 
@@ -97,12 +97,8 @@ class PupilCalibration:
                  lag: int = 0, trend: bool = True, altitude_s: float = 0.0):
         self.sensor = sensor
         self.altitude_s = number("pupil_altitude_s", altitude_s, minimum=0)
-        if not isinstance(asynchronous, (bool, np.bool_)):
-            raise ValueError(f"option pupil_async must be true or false, got {asynchronous!r}")
-        self.asynchronous = bool(asynchronous)
-        if not isinstance(trend, (bool, np.bool_)):
-            raise ValueError(f"option pupil_trend must be true or false, got {trend!r}")
-        self.trend = bool(trend)
+        self.asynchronous = flag("pupil_async", asynchronous)
+        self.trend = flag("pupil_trend", trend)
         self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
         self.want_response = False   # a background refit also fits cog_response (set by cog)
@@ -560,14 +556,7 @@ class PupilCalibration:
         computes it off the frame path)."""
         if self._bias is not None and self._bias[0] == self.version:
             return self._bias[1]
-        img = self.reference_image()
-        p = self.sensor.pixels
-        c = (p - 1) / 2
-        flat = img.reshape(self.n, -1)
-        y, x = np.indices((p, p), dtype=float)
-        tot = flat.sum(axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out = np.stack([flat @ (x.ravel() - c), flat @ (y.ravel() - c)], axis=1) / tot[:, None]
+        out = self._cog(self.reference_image())
         out = np.where(np.isfinite(out), out, 0.0)
         out.flags.writeable = False
         self._bias = (self.version, out)
@@ -583,19 +572,14 @@ class PupilCalibration:
         On a polar detector a block's spot is the product of a function of block x and one
         of block y, and so is the field: the CoG along x depends on the shift along x
         alone. The scan's ``points^2`` positions then need ``points`` renders (the
-        diagonal: each gives both axes), the same numbers (``points^2`` renders on a
-        cartesian detector, ~0.9 s against ~2.7 s for the full pupil)."""
+        diagonal: each gives both axes) and give the same numbers (full pupil: ~0.3 s a
+        refit polar, ~2.7 s cartesian with ``points^2`` renders)."""
         if self._response is not None and self._response[0] == self.version:
             return self._response[1]
         spots = self.spots()
-        p = self.sensor.pixels
-        y, x = np.indices((p, p), dtype=float)
-        w = np.stack([np.ones(p * p), x.ravel() - (p - 1) / 2, y.ravel() - (p - 1) / 2], axis=1)
 
         def measure(shift):
-            m = spots.image_at(shift).reshape(self.n, -1) @ w                  # (n, 3)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                return m[:, 1:] / m[:, :1]
+            return self._cog(spots.image_at(shift))
         points, degree = COG_RESPONSE_GRID
         scan = measure
         if self.sensor.detector == "polar":
@@ -608,6 +592,17 @@ class PupilCalibration:
         out = ResponseMap.fit(scan, self.n, COG_RESPONSE_EXTENT_PX, points, degree)
         self._response = (self.version, out)
         return out
+
+    def _cog(self, images: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` CoG of ``images (n, p, p)``, px from the block's centre, block axes
+        (NaN where an image has no light)."""
+        p = self.sensor.pixels
+        y, x = np.indices((p, p), dtype=float)
+        c = (p - 1) / 2
+        w = np.stack([np.ones(p * p), x.ravel() - c, y.ravel() - c], axis=1)
+        m = images.reshape(self.n, -1) @ w                                      # (n, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return m[:, 1:] / m[:, :1]
 
     def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy, flux)``: the reference in counts (the observed mean flux of
@@ -644,8 +639,8 @@ FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of t
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
-              "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum", "_gram", "_rough",
-              "_spread")
+              "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum",
+              "_gram", "_rough", "_spread")
 
 # The CoG's response (cog_response): scanned over +-1.4 px per block axis (3 sigma of the
 # shifts a closed loop leaves, 0.46 px rms per axis; a corner, rotated to the detector's

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import choice, number
+from .base import choice, flag, number
 
 REFERENCE_SOURCES = ("history", "static", "model", "pupil")
 
@@ -115,9 +115,7 @@ class ReferenceSource:
         self.source = choice("reference", source, REFERENCE_SOURCES)
         self.history = number("history", history, minimum=1, integer=True)
         self.update_period = number("update_period", update_period, minimum=1, integer=True)
-        if not isinstance(include_current, (bool, np.bool_)):
-            raise ValueError(f"option include_current must be true or false, got {include_current!r}")
-        self.include_current = bool(include_current)
+        self.include_current = flag("include_current", include_current)
         self._model = model
         self.reset()
 
