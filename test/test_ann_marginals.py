@@ -44,21 +44,27 @@ def test_block_marginals_are_the_row_and_column_sums():
     np.testing.assert_array_equal(kernels.block_marginals(frame, o, P), m)
 
 
+@pytest.mark.parametrize("bias", ["none", "pupil"])
 @pytest.mark.parametrize("log_weight", [0.0, 0.7])
-def test_linear_marginal_model_is_the_pupil_calibrated_cog(tmp_path, log_weight):
+def test_linear_marginal_model_is_the_pupil_calibrated_cog(tmp_path, log_weight, bias):
     """Through refits (period 3), on frames (the compiled marginals) and stacks, ann with the
     linear marginal model equals cog with bias = pupil (block x from the network, block y
     the calibrated CoG of the row sums); the log-total input is the log10 of each block's
-    counts (over 3, minus 0.8)."""
+    counts (over 3, minus 0.8). With ``bias: pupil`` the model's reading of its noise-free
+    reference is subtracted: here the log term at the calibration's flux."""
     sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
     ann, cog, plain = beside_calibrated_cog(
-        sensor, linear_marginal_model(tmp_path / "marg.onnx", log_weight))
+        sensor, linear_marginal_model(tmp_path / "marg.onnx", log_weight), bias=bias)
+    assert ann.describe()["options"]["bias"] == bias
     lay = geometry.layout(sensor)
     for k, f in enumerate(frames(sensor, 7)):
         data = f if k % 2 else geometry.frame_to_stack(f, lay)
         a, c, p = ann.centroid(data), cog.centroid(data), plain.centroid(data)
         tot = geometry.frame_to_stack(f, lay).reshape(lay.n_valid, -1).sum(axis=1)
         extra = log_weight * (np.log10(tot) / 3 - margtrain.LOG_OFFSET)
+        if bias == "pupil":                 # the reading of the reference at its flux
+            flux = sensor.photons if ann.pupil.flux is None else ann.pupil.flux
+            extra = extra - log_weight * (np.log10(flux) / 3 - margtrain.LOG_OFFSET)
         want = c + sensor_axes(sensor, extra)          # block x only
         np.testing.assert_allclose(a, want, atol=2e-4)
         if k >= 3:

@@ -62,21 +62,22 @@ def frames(sensor, n, seed=0):
     return out
 
 
-def beside_calibrated_cog(sensor, model):
+def beside_calibrated_cog(sensor, model, bias="auto"):
     """``(ann with model, cog with bias = pupil, plain cog)``, the two calibrated ones
     refitting every 3 frames with no averaging: what a linear model is checked against."""
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    return (options.build("ann", sensor, {"model": str(model), **pup}),
+    return (options.build("ann", sensor, {"model": str(model), "bias": bias, **pup}),
             options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup}),
             options.build("cog", sensor, {}))
 
 
-@pytest.mark.parametrize("det", ["polar", "cartesian"])
-def test_linear_reference_model_is_the_pupil_calibrated_cog(tmp_path, det):
+@pytest.mark.parametrize("det,bias", [("polar", "auto"), ("cartesian", "auto"), ("cartesian", "pupil")])
+def test_linear_reference_model_is_the_pupil_calibrated_cog(tmp_path, det, bias):
     """Through a refit (period 3), frame by frame and on stacks, ann with the linear model
-    equals cog with bias = pupil: the same references, installed at the same frame."""
+    equals cog with bias = pupil: the same references, installed at the same frame (the
+    model reads its own reference as 0, so ``bias: pupil`` changes nothing)."""
     sensor = Sensor(detector=det, launch_xy_m=(16.0, 0.0), photons=1000.0)
-    ann, cog, plain = beside_calibrated_cog(sensor, linear_reference_model(tmp_path / "lin.onnx"))
+    ann, cog, plain = beside_calibrated_cog(sensor, linear_reference_model(tmp_path / "lin.onnx"), bias)
     lay = geometry.layout(sensor)
     for k, f in enumerate(frames(sensor, 7)):
         data = f if k % 2 else geometry.frame_to_stack(f, lay)        # frame and stack paths

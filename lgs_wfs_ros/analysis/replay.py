@@ -67,12 +67,15 @@ def recorded_defaults(options: dict) -> dict:
     place): a cmf without ``filters`` (recorded before the grid of filters became its
     default) is the single filter it was live; a cog with ``bias: pupil`` and no
     ``linearize`` (recorded before it inverted its response, 2026-11-26) subtracted the
-    bias alone."""
+    bias alone; an ann without ``bias`` (recorded before it subtracted its reading of the
+    calibrated reference, 2026-11-26) subtracted nothing."""
     if "cmf" in options and "filters" not in options["cmf"]:
         options["cmf"]["filters"] = "single"
     cog = options.get("cog")
     if cog is not None and cog.get("bias") == "pupil" and "linearize" not in cog:
         cog["linearize"] = False
+    if "ann" in options and "bias" not in options["ann"]:
+        options["ann"]["bias"] = "none"
     return options
 
 
@@ -86,7 +89,10 @@ def _plan(algorithms, models, given, recorded):
             for m in models:
                 label = "ann" if len(models) == 1 else "ann_" + "".join(
                     ch if ch.isalnum() else "_" for ch in Path(str(m)).with_suffix("").as_posix())
-                plan.append((label, alg, {**opts, "model": str(m)}, "given"))
+                run = {**opts, "model": str(m)}
+                if run.get("bias") == "pupil" and str(m) != opts.get("model"):
+                    run["bias"] = "auto"        # the recorded model's setting, not this one's
+                plan.append((label, alg, run, "given"))
         else:
             plan.append((alg, alg, opts, source))
     return plan

@@ -70,7 +70,7 @@ from ..optics import geometry
 from . import domain as model_domain
 from . import kernels
 from . import pupil as pupil_cal
-from .base import Centroider, check_options
+from .base import Centroider, check_options, choice
 
 #: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
 #: reference; on a polar detector ann_conv (filters its reference sets through convolutions,
@@ -413,10 +413,16 @@ class ANN(Centroider):
         out_of_domain: "refuse" (default: a sensor with any subaperture outside the
             model's training domain, :mod:`.domain`, raises ValueError with the reason) |
             "warn" (run; ``describe()["domain"]`` counts the subapertures outside).
+        bias: "pupil" (subtract the model's own reading of each subaperture's noise-free
+            calibrated reference, taken at every refit: what the network reads where the
+            true shift is zero) | "none" | "auto" (default: "pupil" for a marginals model,
+            whose reading of the noise-free reference is its mean reading under photon noise,
+            "none" otherwise). Needs a reference-reading model; the option as run (pupil or
+            none) is in ``describe()["options"]``.
     """
 
     name = "ann"
-    _allowed = ("model", "out_of_domain", *pupil_cal.OPTION_DEFAULTS)
+    _allowed = ("model", "out_of_domain", "bias", *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
@@ -424,6 +430,7 @@ class ANN(Centroider):
         options.setdefault("out_of_domain", "refuse")
         if options["out_of_domain"] not in ("refuse", "warn"):
             raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
+        choice("bias", options.setdefault("bias", "auto"), ("auto", "pupil", "none"))
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
@@ -456,13 +463,13 @@ class ANN(Centroider):
         self.marginals = md["input"] == "marginals"
         _check_width(inputs[self.input_name], self.p if self.marginals else self.p * self.p,
                      "pixel input", self.n)
-        self.cond = None
+        self.cond, self._offset = None, None
         if md["hyper"]:
             missing = [nm for nm in md["hyper_outputs"] if nm not in inputs]
             if missing:
                 raise ValueError(f"ann: the hyper model's frame part lacks inputs {missing}")
             self.pupil = pupil_cal.from_options(sensor, options, sensor.background_e)
-            self.cond = ("hyper", self._reference_code())
+            self.cond = ("hyper", None)
         elif md["conditioning"] != "none":
             cname = md["conditioning_input"]
             if cname not in inputs:
@@ -471,17 +478,20 @@ class ANN(Centroider):
             e = np.asarray(self.layout.e, dtype=np.float32)
             if md["conditioning"] == "reference":
                 self.pupil = pupil_cal.from_options(sensor, options, sensor.background_e)
-                e = self._reference_code()
+                e = np.zeros((self.n, 0), dtype=np.float32)      # set by _install_reference
             elif md.get("conditioning_frame", "detector") == "pixel" and self.sensor.detector == "polar":
                 # e in the block's own pixel axes: along local x on a polar detector
                 e = np.tile(np.array([1.0, 0.0], dtype=np.float32), (e.shape[0], 1))
             if md["conditioning"] == "e_r":
                 e = np.concatenate([e, (np.asarray(self.layout.r_m) / 15.0)[:, None]], axis=1)
-            _check_width(inputs[cname], e.shape[1], "conditioning input", self.n)
+            if self.pupil is None:
+                _check_width(inputs[cname], e.shape[1], "conditioning input", self.n)
             self.cond = (cname, np.ascontiguousarray(e, dtype=np.float32))
         elif len(inputs) > 1:
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
         self.domain = self._check_domain(options["out_of_domain"])
+        self._debias = self._bias_option(options["bias"])
+        self.options["bias"] = "pupil" if self._debias else "none"
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
         self.folded = None
@@ -489,17 +499,65 @@ class ANN(Centroider):
             self.folded = self._fold()
         if self.marginals:
             kernels.warm_up()
+        if self.pupil is not None:
+            self._install_reference()
+            if self._refit is None:                     # the reference's code, one row each
+                _check_width(inputs[self.cond[0]], self.cond[1].shape[1], "conditioning input", self.n)
+
+    def _bias_option(self, value: str) -> bool:
+        """Whether the model's reading of its calibrated reference is subtracted (option
+        ``bias``); ValueError for ``pupil`` on a model that reads no reference."""
+        if value == "auto":
+            return self.marginals and self.pupil is not None
+        if value == "pupil" and self.pupil is None:
+            raise ValueError(f"ann: bias 'pupil' needs a model that reads the pupil-calibrated "
+                             f"reference; {self.path.name} reads none (use bias none or auto)")
+        return value == "pupil"
+
+    def _install_reference(self) -> None:
+        """Take the calibration's current references: the model's code of them and the
+        offset every reading loses (:meth:`_reference_offset`)."""
+        self.cond = (self.cond[0], self._reference_code())
+        self.__dict__.pop("_cond_rows", None)
+        self._offset = self._reference_offset()
+
+    def _reference_offset(self) -> np.ndarray | None:
+        """``(n, 2)`` block axes, px, subtracted from every reading, or None: with ``bias``
+        pupil the model's reading of each noise-free reference (at the calibration's flux);
+        else, on a marginals model, block y's alone (the row sums' CoG is the calibrated
+        CoG whatever the option)."""
+        if not (self._debias or self.marginals):
+            return None
+        reading = np.nan_to_num(self._reading(self.pupil.counts()[0]), nan=0.0, posinf=0.0, neginf=0.0)
+        if not self._debias:
+            reading[:, 0] = 0.0
+        return reading
+
+    def _reading(self, stack: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` raw readings, block axes, px, of float counts ``stack (n, p, p)``,
+        no offset removed and nothing fed to the calibration."""
+        stack = np.asarray(stack, dtype=np.float32)
+        if self.marginals:
+            rows = stack.sum(axis=2)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                y = rows @ (np.arange(self.p) - self.centre) / rows.sum(axis=1)
+            x = self._marginals_out(np.ascontiguousarray(stack.sum(axis=1)))[:, 0] * self.meta["output_scale"]
+            return np.stack([x, y], axis=1).astype(np.float64)
+        if self._refit is not None:
+            out = self._hyper_pixels_out(stack.reshape(self.n, -1))
+        else:
+            out = self._run_stack(stack)[0]
+        return self._block_axes(out * self.meta["output_scale"])
+
+    def _debiased(self, out: np.ndarray) -> np.ndarray:
+        """Block-axes readings ``(n, 2)`` less :meth:`_reference_offset`."""
+        return out if self._offset is None else out - self._offset
 
     def _reference_code(self) -> np.ndarray:
         """``(n, h)`` float32: the calibration's current references (unit sum, block axes)
         through the model's reference matrix."""
         ref = self.pupil.reference_image()
-        if self.marginals:                  # column sums; the row sums' CoG for block y
-            rows = ref.sum(axis=2)
-            tot = rows.sum(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                moment = rows @ (np.arange(self.p) - self.centre)
-                self._bias_y = np.where(tot > 0, moment / tot, 0.0)
+        if self.marginals:                  # column sums (along e)
             ref = ref.sum(axis=1)
         ref = ref.reshape(self.n, -1)
         tot = ref.sum(axis=1, keepdims=True)
@@ -518,8 +576,7 @@ class ANN(Centroider):
         refit = self.pupil.observe_rows(rows, self.valid_rows) if rows is not None \
             else self.pupil.observe(np.asarray(flat, dtype=np.float64))
         if refit:
-            self.cond = (self.cond[0], self._reference_code())
-            self.__dict__.pop("_cond_rows", None)
+            self._install_reference()
 
     def _check_domain(self, policy: str) -> "model_domain.DomainCheck":
         """The sensor against the model's training domain; ValueError under "refuse"."""
@@ -612,7 +669,7 @@ class ANN(Centroider):
                 self._observe(flat=self.as_stack(raw).reshape(self.n, -1))
             out, total = self._run_stack(raw)
         ok = np.isfinite(total) & (total > 0)
-        return self.finish(self._block_axes(out * self.meta["output_scale"]), ok)
+        return self.finish(self._debiased(self._block_axes(out * self.meta["output_scale"])), ok)
 
     def _centroid_marginals(self, raw: np.ndarray) -> np.ndarray:
         """A marginals model: each block's column and row sums (one compiled pass over an
@@ -632,9 +689,20 @@ class ANN(Centroider):
             marg[~good] = np.nan
             refit = self.pupil.observe(flat, good)
         if refit:
-            self.cond = (self.cond[0], self._reference_code())
-        x = np.ascontiguousarray(marg[:, 0])
-        if self._trunk is not None:                  # filters in one compiled pass, trunk in onnx
+            self._install_reference()
+        out = self._marginals_out(np.ascontiguousarray(marg[:, 0]))
+        total = marg[:, 1].sum(axis=1, dtype=np.float64)
+        ok = np.isfinite(total) & (total > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            y = marg[:, 1] @ (np.arange(self.p) - self.centre) / total
+        out = np.stack([out[:, 0] * self.meta["output_scale"], y], axis=1)
+        return self.finish(self._debiased(out), ok)
+
+    def _marginals_out(self, x: np.ndarray) -> np.ndarray:
+        """A marginals model's raw output ``(n, 1)`` on the column sums ``x (n, p)``
+        float32 (filters in one compiled pass and the trunk in onnxruntime, when the model
+        declares its trunk)."""
+        if self._trunk is not None:
             f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
             z, safe = kernels.hyper_contract(x, f, b)
             names = self.meta["hyper_trunk"]
@@ -648,12 +716,7 @@ class ANN(Centroider):
             out = self.session.run(None, feed)[0]
         if out.shape != (self.n, 1):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 1)}")
-        total = marg[:, 1].sum(axis=1, dtype=np.float64)
-        ok = np.isfinite(total) & (total > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            y = marg[:, 1] @ (np.arange(self.p) - self.centre) / total - self._bias_y
-        out = np.stack([out[:, 0] * self.meta["output_scale"], y], axis=1)
-        return self.finish(out, ok)
+        return out
 
     def _centroid_hyper_pixels(self, raw: np.ndarray) -> np.ndarray:
         """A hyper model on whole blocks (cartesian): each block's counts through its own
@@ -662,6 +725,14 @@ class ANN(Centroider):
         first (a refit installs its filters for this frame)."""
         flat = self.float_stack(raw).reshape(self.n, -1)
         self._observe(flat=flat)
+        out = self._hyper_pixels_out(flat)
+        total = flat.sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(total) & (total > 0)
+        return self.finish(self._debiased(self._block_axes(out * self.meta["output_scale"])), ok)
+
+    def _hyper_pixels_out(self, flat: np.ndarray) -> np.ndarray:
+        """A pixel hyper model's raw output ``(n, 2)`` float64 on counts ``flat (n, p*p)``."""
         f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
         if self._trunk is not None:
             z, safe = kernels.hyper_contract(flat, f, b)
@@ -672,11 +743,7 @@ class ANN(Centroider):
             out = self.session.run(None, feed)[0]
         if out.shape != (self.n, 2):
             raise ValueError(f"ann: model output has shape {out.shape}, expected {(self.n, 2)}")
-        total = flat.sum(axis=1)
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(total) & (total > 0)
-        out = np.asarray(out, dtype=np.float64) * self.meta["output_scale"]
-        return self.finish(self._block_axes(out), ok)
+        return np.asarray(out, dtype=np.float64)
 
     def _block_axes(self, out: np.ndarray) -> np.ndarray:
         """Model output ``(..., n, 2)`` in its ``output_frame`` -> block pixel axes."""
@@ -704,8 +771,7 @@ class ANN(Centroider):
         """Forget the pupil calibration's profile (reference models): back to its prior."""
         if self.pupil is not None:
             self.pupil.reset()
-            self.cond = (self.cond[0], self._reference_code())
-            self.__dict__.pop("_cond_rows", None)
+            self._install_reference()
 
     def describe(self):
         """As :meth:`Centroider.describe`, the model given by name and sha256 (never an

@@ -191,6 +191,11 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                   "training domain (radius, detector, input): refuse to start, with the reason "
                   "(refuse), or run and count them in the description (warn).",
                   {"choices": ("refuse", "warn")}),
+                 ("bias", "auto", "Subtract the model's own reading of each subaperture's "
+                  "noise-free reference, estimated from the whole pupil at every refit "
+                  "(pupil), or not (none); auto: pupil for the models that read column sums "
+                  "along e (ann_conv, ann_hyper, ann_marg), none for the others.",
+                  {"choices": ("auto", "pupil", "none")}),
                  *_PUPIL),
     "ml": _rows("ml", ("step_px", 0.25, "Grid step of the likelihood tables, pixels (a "
                        "parabola through the best grid point refines it).",
