@@ -9,6 +9,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from lgs_wfs_ros.centroiding import make_centroider
+from lgs_wfs_ros.centroiding import options as table
 from lgs_wfs_ros.centroiding.ann import resolve_model
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
@@ -257,3 +258,17 @@ def test_gemm_first_layer_is_folded_too(tmp_path, trans_b):
     plain = c.centroid(x)
     np.testing.assert_allclose(fast, plain, atol=1e-5)
     np.testing.assert_allclose(fast_frame, plain, atol=1e-5)
+
+
+def test_bias_option_needs_a_reference_reading_model():
+    """``bias`` resolves per model (auto: pupil for the marginals models, none for the
+    others) and is refused, with the reason, where the model reads no reference."""
+    polar = Sensor(detector="polar")
+    assert table.build("ann", polar, {}).describe()["options"]["bias"] == "pupil"    # ann_conv
+    assert table.build("ann", Sensor(detector="cartesian"), {}).describe()["options"]["bias"] == "none"
+    one = Sensor.paper_single("polar")
+    assert table.build("ann", one, {"model": "ann_1k"}).describe()["options"]["bias"] == "none"
+    with pytest.raises(ValueError, match="reads none"):
+        table.build("ann", one, {"model": "ann_1k", "bias": "pupil"})
+    with pytest.raises(ValueError, match="bias"):
+        table.build("ann", polar, {"bias": "yes"})

@@ -524,3 +524,60 @@ def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
     assert fits == [0, 0, 0, 0, 1, 1, 1, 2, 2]     # started at frames 2, 5, 8; lag 3
     slow.pupil.wait()
     fast.pupil.wait()
+
+
+def test_shipped_network_less_its_reading_of_the_reference_reads_truncated_spots():
+    """``ann_conv`` (the default polar network) reads compact spots half out of the field
+    (a layer at 100-105 km) ~0.05 px short along e at r > 11 m; less its own reading of the
+    calibrated noise-free reference (``bias: pupil``, the default for marginals models) that
+    mean error falls below 0.025 px, nothing lost inside (noise-free shifted spots, up to
+    +-0.9 px; calibrated on three noise-free frames)."""
+    s = SMALL.replace(detector="polar", photons=1000.0)
+    lay = geometry.layout(s)
+    n = lay.n_valid
+    _, _, sm = true_spots(s, "high")
+    cs = {b: table.build("ann", s, {"bias": b, "pupil_period": 3}) for b in ("auto", "none")}
+    assert cs["auto"].describe()["options"]["bias"] == "pupil"
+    zero = sm.images(np.zeros((n, 2)))[0] * 1000.0
+    for c in cs.values():
+        for _ in range(3):
+            c.centroid(zero)
+        assert c.pupil.fits == 1
+    shift = np.random.default_rng(5).uniform(-0.9, 0.9, (n, 2))
+    img = sm.images(shift)[0] * 1000.0
+    along = {b: c.to_pixel_axes(c.centroid(img) - shift)[:, 0] for b, c in cs.items()}
+    outer = lay.r_m > 11.0
+    assert along["none"][outer].mean() < -0.04                     # the network's own bias
+    assert abs(along["auto"][outer].mean()) < 0.025
+    assert np.abs(along["auto"][outer]).mean() < 0.6 * np.abs(along["none"][outer]).mean()
+    assert np.abs(along["auto"][~outer]).mean() < np.abs(along["none"][~outer]).mean() + 0.002
+
+
+def test_an_ann_recorded_before_its_bias_option_replays_without_it(tmp_path, monkeypatch):
+    """A bag whose ann description has no ``bias`` (recorded before the network's reading of
+    its reference was subtracted) replays with ``bias: none``, giving the live slopes; one
+    recorded today replays with the recorded ``pupil``. Another model given to replay takes
+    its own default instead of the recorded model's setting."""
+    import lgs_wfs_ros.centroiding as centroiding
+    from lgs_wfs_ros.analysis import bagdata, replay
+    from lgs_wfs_ros.centroiding.ann import ANN
+
+    make = centroiding.make_centroider
+    s = SMALL.replace(detector="polar")
+    for old in (True, False):
+        path = tmp_path / f"{old}.mcap"
+        with monkeypatch.context() as m:
+            m.setattr(centroiding, "make_centroider", lambda alg, sensor, **o: make(
+                alg, sensor, **{"pupil_period": 4, **o, "bias": "none" if old else "pupil"}))
+            if old:                                   # the old description
+                describe = ANN.describe
+                m.setattr(ANN, "describe", lambda self: {**describe(self), "options": {
+                    k: v for k, v in describe(self)["options"].items() if k != "bias"}})
+            bagdata.make_sample_bag(path, frames=10, sensor=s, algorithms=("ann",))
+        res = replay.replay_bag(path, ["ann"], out=tmp_path / f"r{old}.mcap", quiet=True)
+        segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / f"r{old}.mcap").segments}
+        live, again = segs["ann"].slopes.data, segs["ann_replay"].slopes.data
+        np.testing.assert_allclose(again, live, atol=1e-6)
+        assert res["options"]["ann"]["options"]["bias"] == ("none" if old else "pupil")
+    plan = replay._plan(["ann"], ["ann_1k"], {}, {"ann": {"model": "ann_conv", "bias": "pupil"}})
+    assert plan[0][2] == {"model": "ann_1k", "bias": "auto"}
