@@ -45,6 +45,7 @@ SIGMA_PER_FWHM = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 NODES_PER_PX = 4          # nodes per pixel along the detector axis closest to e
 CORE_SIGMAS = 6.5         # the core is cut at this many sigma (Phi(-6.5) = 4e-11)
 N_GROUPS = 4              # subapertures are grouped by node count to save work
+NO_LIGHT = 1e-6           # below this light in the field a float32 render's CoG is rounding
 
 
 # ---------------------------------------------------------------------------------------
@@ -445,24 +446,81 @@ class SpotModel:
             emin = ndtr((jm[None, :] - b[:, None]) / sig)
             gmin = emin[:, 1:] - emin[:, :-1]                             # (g, p) along local y
             return gmin[:, :, None] * line[:, None, :]                    # rows local y, cols local x
+        gmaj = self._major_lines(g, v)
+        gmin = self._minor_lines(g, s_min)
+        im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
+        return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
+
+    def _major_lines(self, g, v):
+        """``(g, K, p)`` float32: each node's light per pixel along the major axis (weighted),
+        from the core's CDF ``v`` at the node edges (cartesian)."""
+        p, nk = self.sensor.pixels, g["w"].shape[1]
         v = v.astype(np.float32)
         st = v.strides
         edges = as_strided(v[:, nk - 1:], shape=(v.shape[0], nk, p + 1),
-                           strides=(st[0], -st[1], m * st[1]), writeable=False)
+                           strides=(st[0], -st[1], g["m"] * st[1]), writeable=False)
         gmaj = np.subtract(edges[:, :, 1:], edges[:, :, :-1])            # (g, K, p) float32
         gmaj *= g["w32"][:, :, None]
-        # minor axis: the pixel-integrated core from a fine table. The table index of pixel
-        # j for node k is j / step + Y_k (integers) and the interpolation fraction phi_k is
-        # the same for all pixels of a node.
-        tab, dtab, z0, inv_h = _pixel_core_table(sig)
+        return gmaj
+
+    def _minor_lines(self, g, s_min):
+        """``(g, K, p)`` float32: each node's core integrated over the pixels of the minor
+        axis (cartesian). The table index of pixel j for node k is j / step + Y_k (integers)
+        and the interpolation fraction phi_k is the same for all pixels of a node."""
+        p, c = self.sensor.pixels, (self.sensor.pixels - 1) / 2.0
+        tab, dtab, z0, inv_h = _pixel_core_table(self.sigma_px)
         t = -(c + g["b"] + s_min[:, None] + z0) * inv_h                  # (g, K)
         y0 = np.floor(t)
         phi = (t - y0).astype(np.float32)[:, :, None]
         i = y0.astype(np.intp)[:, :, None] + (np.arange(p) * int(inv_h))[None, None, :]
         gmin = tab.take(i, mode="clip")
         gmin += phi * dtab.take(i, mode="clip")
-        im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
-        return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
+        return gmin
+
+    def cog_grid(self, t) -> np.ndarray:
+        """``(n, T, T, 2)`` CoG (px from the block centre, detector axes) of every spot
+        displaced by ``(t[a], t[b])`` px in (x, y), for a cartesian detector.
+
+        A spot is a sum over nodes of a line along the major pixel axis times a core along
+        the minor one, so its moments are sums of products of 1-D moments: ``2 T`` partial
+        renders give the ``T^2`` positions (what :meth:`images` and a CoG give, to float32
+        rounding).
+
+        Args:
+            t: ``(T,)`` shifts, px, each ``|t| <= max_shift_px``.
+
+        Returns:
+            NaN where the field keeps no more than :data:`NO_LIGHT` of a spot (the
+            cartesian renders are float32: a CoG of less light is rounding noise).
+        """
+        if self.polar:
+            raise ValueError("cog_grid is for a cartesian detector (polar spots: one render "
+                             "per diagonal position gives both axes)")
+        t = np.asarray(t, dtype=float)
+        if np.any(np.abs(t) > self.max_shift_px + 1e-9):
+            raise ValueError(f"|shift| up to {np.abs(t).max():.3g} px exceeds max_shift_px="
+                             f"{self.max_shift_px} this model was built for")
+        p, sig = self.sensor.pixels, self.sigma_px
+        u = np.arange(p) - (p - 1) / 2.0
+        out = np.empty((self.n, t.size, t.size, 2))
+        for g in self.groups:
+            m, nk, ng = g["m"], g["w"].shape[1], g["idx"].size
+            q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
+            a0 = (p - 1) / 2.0 + g["a0"]
+            maj = [self._major_lines(g, _core_cdf(q[None, :] - (a0 + ta)[:, None], sig)) for ta in t]
+            mnr = [self._minor_lines(g, np.full(ng, tb)) for tb in t]
+            a = np.stack([np.stack([x.sum(-1), x @ u.astype(np.float32)]) for x in maj])   # (T, 2, g, K)
+            b = np.stack([np.stack([x.sum(-1), x @ u.astype(np.float32)]) for x in mnr])
+            m0 = np.einsum("agk,bgk->gab", a[:, 0], b[:, 0], dtype=np.float64)   # [major, minor]
+            m_maj = np.einsum("agk,bgk->gab", a[:, 1], b[:, 0], dtype=np.float64)
+            m_min = np.einsum("agk,bgk->gab", a[:, 0], b[:, 1], dtype=np.float64)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                c_maj = np.where(m0 > NO_LIGHT, m_maj / m0, np.nan)
+                c_min = np.where(m0 > NO_LIGHT, m_min / m0, np.nan)
+            y = g["major_y"][:, None, None]                                  # (x node, y node)
+            out[g["idx"], :, :, 0] = np.where(y, c_min.transpose(0, 2, 1), c_maj)
+            out[g["idx"], :, :, 1] = np.where(y, c_maj.transpose(0, 2, 1), c_min)
+        return out
 
 
 def spot_images(sensor: Sensor, r_m, e, altitude_m, density, shift_px) -> tuple[np.ndarray, np.ndarray]:
@@ -485,5 +543,5 @@ def spot_images(sensor: Sensor, r_m, e, altitude_m, density, shift_px) -> tuple[
     return SpotModel(sensor, r_m, e, altitude_m, density, max_shift_px=smax).images(s)
 
 
-__all__ = ["SpotModel", "spot_images", "elongation_px", "linear_elongation_arcsec",
+__all__ = ["SpotModel", "spot_images", "elongation_px", "linear_elongation_arcsec", "NO_LIGHT",
            "exact_elongation_arcsec", "light_centroid_px", "NODES_PER_PX", "SIGMA_PER_FWHM"]
