@@ -575,9 +575,9 @@ class PupilCalibration:
         diagonal: each gives both axes) and give the same numbers. On a cartesian one each
         node's light is a line along one pixel axis times a core along the other, so the
         moments of all ``points^2`` positions come from ``2 points`` partial renders
-        (:meth:`.SpotModel.cog_grid`, the same to ~1e-4 px). Full pupil: ~0.3 s a refit
-        polar; cartesian ~0.8 s, where 36 whole renders took ~3.2 s (process time beside
-        two benchmark processes on 2 cores, 2026-11-26)."""
+        (:meth:`.SpotModel.cog_grid`, the same to ~1e-4 px). Full pupil, process time a
+        refit: ~0.3 s polar, ~0.4 s cartesian on a quiet host (36 whole renders took
+        ~2.7 s; beside two benchmark processes 0.8 s against 3.2 s)."""
         if self._response is not None and self._response[0] == self.version:
             return self._response[1]
         spots = self.spots()
