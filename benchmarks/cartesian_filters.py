@@ -303,7 +303,8 @@ def validation_spots(rng: np.random.Generator, n: int, family: str, photons: flo
     ref = ref / ref.sum(axis=(1, 2), keepdims=True)
     counts = expose(img / tot[:, None, None], np.full(n, float(photons)), rng, 0.0, 0.0, True, "float32")
     return {"counts": counts.astype(np.float32), "refs": ref.astype(np.float32),
-            "y": t.astype(np.float32), "r_m": r, "e": e, "photons": np.full(n, float(photons))}, crb
+            "y": t.astype(np.float32), "r_m": r, "e": e, "photons": np.full(n, float(photons)),
+            "fisher": fi}, crb
 
 
 def cog(a: np.ndarray) -> np.ndarray:
