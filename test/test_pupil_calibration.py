@@ -384,31 +384,43 @@ def test_a_cmf_recorded_before_the_grid_default_replays_as_its_single_filter(tmp
     assert segs["cmf_replay"].description["options"]["filters"] == "single"
 
 
+def replayed_as_recorded(tmp_path, monkeypatch, cls, alg: str, live: dict, hidden=None) -> tuple:
+    """Record a 10-frame bag of ``alg`` run with the options ``live`` (its description
+    without the option ``hidden``: a bag recorded before that option existed) and replay it
+    with the bag's options: ``(replay result, live slopes, replayed slopes)``."""
+    import lgs_wfs_ros.centroiding as centroiding
+    from lgs_wfs_ros.analysis import bagdata, replay
+
+    make = centroiding.make_centroider
+    path = tmp_path / f"{alg}_{hidden}.mcap"
+    with monkeypatch.context() as m:
+        m.setattr(centroiding, "make_centroider",
+                  lambda a, sensor, **o: make(a, sensor, **{**o, **live}))
+        if hidden is not None:
+            describe = cls.describe
+            m.setattr(cls, "describe", lambda self: {**describe(self), "options": {
+                k: v for k, v in describe(self)["options"].items() if k != hidden}})
+        bagdata.make_sample_bag(path, frames=10, sensor=SMALL.replace(detector="polar"),
+                                algorithms=(alg,))
+    out = path.with_name("r_" + path.name)
+    res = replay.replay_bag(path, [alg], out=out, quiet=True)
+    segs = {sg.label: sg for sg in bagdata.load_bag(out).segments}
+    return res, segs[alg].slopes.data, segs[alg + "_replay"].slopes.data
+
+
 def test_a_calibrated_cog_recorded_before_its_response_replays_with_its_bias_alone(
         tmp_path, monkeypatch):
     """A bag whose cog (bias: pupil) description has no ``linearize`` (recorded when the
     calibrated CoG subtracted its bias alone) replays that way, giving the live slopes; a
     bag recorded today replays with the response inverted."""
-    import lgs_wfs_ros.centroiding as centroiding
-    from lgs_wfs_ros.analysis import bagdata, replay
+    from lgs_wfs_ros.analysis import replay
     from lgs_wfs_ros.centroiding.cog import CoG
 
-    make = centroiding.make_centroider
-    s = SMALL.replace(detector="polar")
     for old in (True, False):
-        path = tmp_path / f"{old}.mcap"
-        with monkeypatch.context() as m:
-            m.setattr(centroiding, "make_centroider", lambda alg, sensor, **o: make(
-                alg, sensor, bias="pupil", pupil_period=4, linearize=not old, **o))
-            if old:                                   # the old description
-                describe = CoG.describe
-                m.setattr(CoG, "describe", lambda self: {**describe(self), "options": {
-                    k: v for k, v in describe(self)["options"].items() if k != "linearize"}})
-            bagdata.make_sample_bag(path, frames=10, sensor=s, algorithms=("cog",))
-        res = replay.replay_bag(path, ["cog"], out=tmp_path / f"r{old}.mcap", quiet=True)
-        segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / f"r{old}.mcap").segments}
-        np.testing.assert_allclose(segs["cog_replay"].slopes.data, segs["cog"].slopes.data,
-                                   atol=1e-6)
+        res, live, again = replayed_as_recorded(
+            tmp_path, monkeypatch, CoG, "cog", {"bias": "pupil", "pupil_period": 4, "linearize": not old},
+            "linearize" if old else None)
+        np.testing.assert_allclose(again, live, atol=1e-6)
         assert res["options"]["cog"]["options"].get("linearize", True) is (not old)
     assert replay.recorded_defaults({"cog": {"bias": "none"}}) == {"cog": {"bias": "none"}}
 
@@ -563,25 +575,13 @@ def test_an_ann_recorded_before_its_bias_option_replays_without_it(tmp_path, mon
     its reference was subtracted) replays with ``bias: none``, giving the live slopes; one
     recorded today replays with the recorded ``pupil``. Another model given to replay takes
     its own default instead of the recorded model's setting."""
-    import lgs_wfs_ros.centroiding as centroiding
-    from lgs_wfs_ros.analysis import bagdata, replay
+    from lgs_wfs_ros.analysis import replay
     from lgs_wfs_ros.centroiding.ann import ANN
 
-    make = centroiding.make_centroider
-    s = SMALL.replace(detector="polar")
     for old in (True, False):
-        path = tmp_path / f"{old}.mcap"
-        with monkeypatch.context() as m:
-            m.setattr(centroiding, "make_centroider", lambda alg, sensor, **o: make(
-                alg, sensor, **{"pupil_period": 4, **o, "bias": "none" if old else "pupil"}))
-            if old:                                   # the old description
-                describe = ANN.describe
-                m.setattr(ANN, "describe", lambda self: {**describe(self), "options": {
-                    k: v for k, v in describe(self)["options"].items() if k != "bias"}})
-            bagdata.make_sample_bag(path, frames=10, sensor=s, algorithms=("ann",))
-        res = replay.replay_bag(path, ["ann"], out=tmp_path / f"r{old}.mcap", quiet=True)
-        segs = {sg.label: sg for sg in bagdata.load_bag(tmp_path / f"r{old}.mcap").segments}
-        live, again = segs["ann"].slopes.data, segs["ann_replay"].slopes.data
+        res, live, again = replayed_as_recorded(
+            tmp_path, monkeypatch, ANN, "ann", {"pupil_period": 4, "bias": "none" if old else "pupil"},
+            "bias" if old else None)
         np.testing.assert_allclose(again, live, atol=1e-6)
         assert res["options"]["ann"]["options"]["bias"] == ("none" if old else "pupil")
     plan = replay._plan(["ann"], ["ann_1k"], {}, {"ann": {"model": "ann_conv", "bias": "pupil"}})
