@@ -528,19 +528,25 @@ class ANN(Centroider):
         CoG whatever the option)."""
         if not (self._debias or self.marginals):
             return None
-        reading = np.nan_to_num(self._reading(self.pupil.counts()[0]), nan=0.0, posinf=0.0, neginf=0.0)
-        if not self._debias:
-            reading[:, 0] = 0.0
-        return reading
+        ref = self.pupil.counts()[0]
+        if self._debias:
+            reading = self._reading(ref)
+        else:
+            reading = np.stack([np.zeros(self.n), self._row_cog(ref.sum(axis=2))], axis=1)
+        return np.nan_to_num(reading, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def _row_cog(self, rows: np.ndarray) -> np.ndarray:
+        """``(n,)`` CoG of the row sums ``rows (n, p)``, px from the block centre (block y of
+        a marginals model; NaN where a row sum has no light)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return rows @ (np.arange(self.p) - self.centre) / rows.sum(axis=1, dtype=np.float64)
 
     def _reading(self, stack: np.ndarray) -> np.ndarray:
         """``(n, 2)`` raw readings, block axes, px, of float counts ``stack (n, p, p)``,
         no offset removed and nothing fed to the calibration."""
         stack = np.asarray(stack, dtype=np.float32)
         if self.marginals:
-            rows = stack.sum(axis=2)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                y = rows @ (np.arange(self.p) - self.centre) / rows.sum(axis=1)
+            y = self._row_cog(stack.sum(axis=2))
             x = self._marginals_out(np.ascontiguousarray(stack.sum(axis=1)))[:, 0] * self.meta["output_scale"]
             return np.stack([x, y], axis=1).astype(np.float64)
         if self._refit is not None:
@@ -693,9 +699,7 @@ class ANN(Centroider):
         out = self._marginals_out(np.ascontiguousarray(marg[:, 0]))
         total = marg[:, 1].sum(axis=1, dtype=np.float64)
         ok = np.isfinite(total) & (total > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            y = marg[:, 1] @ (np.arange(self.p) - self.centre) / total
-        out = np.stack([out[:, 0] * self.meta["output_scale"], y], axis=1)
+        out = np.stack([out[:, 0] * self.meta["output_scale"], self._row_cog(marg[:, 1])], axis=1)
         return self.finish(self._debiased(out), ok)
 
     def _marginals_out(self, x: np.ndarray) -> np.ndarray:

@@ -218,10 +218,9 @@ class CMF(Centroider):
         self.background = number("background", o["background"], minimum=0)
         self.var_floor = number("var_floor", o["var_floor"], minimum=0, strict=True)
         self.derivative = choice("derivative", o["derivative"], ("fourier", "dither"))
-        flag("linearize", o["linearize"])
         # a reference that changes every frame (history) or pushed dither derivatives
         # would need a new calibration every frame: linearize applies to fixed references
-        self.linearize = bool(o["linearize"]) and o["reference"] != "history" \
+        self.linearize = flag("linearize", o["linearize"]) and o["reference"] != "history" \
             and self.derivative == "fourier"
         self.linearize_extent = number("linearize_extent", o["linearize_extent"], minimum=0, strict=True)
         self._dithers = []

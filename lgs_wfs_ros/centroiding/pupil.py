@@ -583,18 +583,16 @@ class PupilCalibration:
         spots = self.spots()
         points, degree = COG_RESPONSE_GRID
         nodes = chebyshev_nodes(points, COG_RESPONSE_EXTENT_PX)
-        if self.sensor.detector == "polar":
-            diagonal = [self._cog(spots.image_at(np.full((self.n, 2), t))) for t in nodes]
-
-            def scan(shift):                        # a scanned position: nodes per axis
-                kx, ky = (int(np.argmin(np.abs(nodes - shift[0, a]))) for a in (0, 1))
-                return np.stack([diagonal[kx][:, 0], diagonal[ky][:, 1]], axis=1)
+        if self.sensor.detector == "polar":     # (n, points, 2): each render gives both axes
+            d = np.stack([self._cog(spots.image_at(np.full((self.n, 2), t))) for t in nodes], axis=1)
+            grid = np.stack(np.broadcast_arrays(d[:, :, None, 0], d[:, None, :, 1]), axis=-1)
         else:
-            grid = spots.model.cog_grid(nodes)     # (n, points, points, 2), block = detector axes
+            grid = spots.model.cog_grid(nodes)     # block axes are the detector's
+        # (n, points, points, 2): the CoG at (nodes[kx], nodes[ky])
 
-            def scan(shift):
-                kx, ky = (int(np.argmin(np.abs(nodes - shift[0, a]))) for a in (0, 1))
-                return grid[:, kx, ky]
+        def scan(shift):
+            kx, ky = (int(np.argmin(np.abs(nodes - shift[0, a]))) for a in (0, 1))
+            return grid[:, kx, ky]
         out = ResponseMap.fit(scan, self.n, COG_RESPONSE_EXTENT_PX, points, degree)
         self._response = (self.version, out)
         return out

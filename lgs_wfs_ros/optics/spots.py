@@ -432,10 +432,7 @@ class SpotModel:
         c = (p - 1) / 2.0
         w = g["w"]
         nk = w.shape[1]
-        # major axis: Phi at edge e - 1/2 of node k = V[m e - k + K - 1]
-        a0 = c + g["a0"] + s_maj
-        q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
-        v = _core_cdf(q[None, :] - a0[:, None], sig)
+        v = self._edge_cdf(g, s_maj)
         jm = np.arange(p + 1) - 0.5
         if self.polar:
             # cumulative light of the line at the p + 1 pixel edges: a correlation of V with w
@@ -450,6 +447,14 @@ class SpotModel:
         gmin = self._minor_lines(g, s_min)
         im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
         return np.where(g["major_y"][:, None, None], im.transpose(0, 2, 1), im)
+
+    def _edge_cdf(self, g, s_maj):
+        """``(g, m p + K)`` the core's CDF along the major axis: Phi at edge e - 1/2 of node
+        k is ``V[m e - k + K - 1]``, for major-axis shifts ``s_maj (g,)`` px."""
+        p, m, nk = self.sensor.pixels, g["m"], g["w"].shape[1]
+        a0 = (p - 1) / 2.0 + g["a0"] + s_maj
+        q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
+        return _core_cdf(q[None, :] - a0[:, None], self.sigma_px)
 
     def _major_lines(self, g, v):
         """``(g, K, p)`` float32: each node's light per pixel along the major axis (weighted),
@@ -500,15 +505,13 @@ class SpotModel:
         if np.any(np.abs(t) > self.max_shift_px + 1e-9):
             raise ValueError(f"|shift| up to {np.abs(t).max():.3g} px exceeds max_shift_px="
                              f"{self.max_shift_px} this model was built for")
-        p, sig = self.sensor.pixels, self.sigma_px
+        p = self.sensor.pixels
         u = np.arange(p) - (p - 1) / 2.0
         out = np.empty((self.n, t.size, t.size, 2))
         for g in self.groups:
-            m, nk, ng = g["m"], g["w"].shape[1], g["idx"].size
-            q = (np.arange(m * p + nk) - (nk - 1)) / m - 0.5
-            a0 = (p - 1) / 2.0 + g["a0"]
-            maj = [self._major_lines(g, _core_cdf(q[None, :] - (a0 + ta)[:, None], sig)) for ta in t]
-            mnr = [self._minor_lines(g, np.full(ng, tb)) for tb in t]
+            shift = [np.full(g["idx"].size, tk) for tk in t]
+            maj = [self._major_lines(g, self._edge_cdf(g, sk)) for sk in shift]
+            mnr = [self._minor_lines(g, sk) for sk in shift]
             a = np.stack([np.stack([x.sum(-1), x @ u.astype(np.float32)]) for x in maj])   # (T, 2, g, K)
             b = np.stack([np.stack([x.sum(-1), x @ u.astype(np.float32)]) for x in mnr])
             m0 = np.einsum("agk,bgk->gab", a[:, 0], b[:, 0], dtype=np.float64)   # [major, minor]
