@@ -49,7 +49,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lgs_wfs_ros.analysis import metrics  # noqa: E402
-from lgs_wfs_ros.analysis.report import crb_covariances, mean_abs_norm  # noqa: E402
+from lgs_wfs_ros.analysis.report import bound_covariances, mean_abs_norm  # noqa: E402
 from lgs_wfs_ros.centroiding import options as table  # noqa: E402
 from lgs_wfs_ros.optics import geometry, sodium  # noqa: E402
 from lgs_wfs_ros.optics.spots import SpotModel  # noqa: E402
@@ -193,9 +193,8 @@ def refits(c) -> int:
     return -1 if pupil is None else pupil.fits
 
 
-def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_samples=8, log=print,
-             single=False):
-    """One case at both photon levels: ``{"photons": {ph: {label: score}}, "crb", "cpu"}``."""
+def setup(family, det, launch, tilt, warm, scored, seed=0, single=False):
+    """A case's ``(sensor, truth (frames, n, 2) px, Renderer, TTF modes or None)``, seeded."""
     if single:
         base = Sensor.paper_single(det)
     else:
@@ -209,8 +208,38 @@ def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_sample
         evo, t0 = sodium.unseen_sequence(family, frames, base.frame_rate_hz, seed)
     truth = tilts(tilt, base, frames, seed)
     rend = Renderer(base, evo, t0, float(np.abs(truth).max()) + 1.0)
+    return base, truth, rend, (None if single else ttf_modes(base))
+
+
+def bounds(base, truth, rend, warm: int, crb_samples: int) -> tuple[dict, dict]:
+    """``(crb, cog_floor)`` of the scored frames, each ``{photons: {"mean_2d_mas", ...}}``:
+    the Cramer-Rao bound and the photon-noise floor of the response-inverted CoG
+    (``crb.cog_covariance``) at ``crb_samples`` frames spread over them (unit photons; both
+    scale as 1/N with photon noise only)."""
+    idx = np.unique(np.linspace(warm, truth.shape[0] - 1, crb_samples).astype(int))
+
+    def image_at(j, s):
+        k = idx[j]
+        norm = rend.images(k, truth[k]).reshape(truth.shape[1], -1).sum(axis=1)[:, None, None]
+        return rend.images(k, s) / norm
+    unit = bound_covariances(base.replace(photons=1.0), image_at, truth[idx])
+    crb, floor = {}, {}
+    for ph in PHOTONS:
+        cov = unit["crb"] / ph
+        crb[str(int(ph))] = {"mean_2d_mas": float(np.nanmean(mean_abs_norm(cov))) * MAS,
+                             "mae_mas": float(np.nanmean(math.sqrt(2 / math.pi)
+                                                         * np.sqrt(np.einsum("nii->ni", cov)))) * MAS}
+        floor[str(int(ph))] = {"mean_2d_mas": float(np.nanmean(mean_abs_norm(unit["cog"] / ph))) * MAS}
+    return crb, floor
+
+
+def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_samples=8, log=print,
+             single=False):
+    """One case at both photon levels: ``{"photons": {ph: {label: score}}, "crb", "cog_floor",
+    "cpu_ms"}``."""
+    base, truth, rend, q = setup(family, det, launch, tilt, warm, scored, seed, single)
+    frames = warm + scored
     lay = geometry.layout(base)
-    q = None if single else ttf_modes(base)
     rng = np.random.default_rng([seed, 7])
     res = {"photons": {}, "cpu_ms": {}}
     cents = {ph: build(labels, base.replace(photons=ph)) for ph in PHOTONS}
@@ -232,20 +261,8 @@ def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_sample
                     cpu[lb][slot + 1] += 1
                 if k >= warm:
                     errs[ph][lb].append(est - truth[k])
-    # CRB of the scored frames (unit photons; the bound scales as 1/N with photon noise only)
-    idx = np.unique(np.linspace(warm, frames - 1, crb_samples).astype(int))
-
-    def image_at(j, s):
-        k = idx[j]
-        norm = rend.images(k, truth[k]).reshape(truth.shape[1], -1).sum(axis=1)[:, None, None]
-        return rend.images(k, s) / norm
-    unit = crb_covariances(base.replace(photons=1.0), image_at, truth[idx])
-    crb = {}
+    crb, floor = bounds(base, truth, rend, warm, crb_samples)
     for ph in PHOTONS:
-        cov = unit / ph
-        crb[str(int(ph))] = {"mean_2d_mas": float(np.nanmean(mean_abs_norm(cov))) * MAS,
-                             "mae_mas": float(np.nanmean(math.sqrt(2 / math.pi)
-                                                         * np.sqrt(np.einsum("nii->ni", cov)))) * MAS}
         table_ph = {}
         for lb, e in errs[ph].items():
             table_ph[lb] = score(np.array(e), q)
@@ -259,7 +276,7 @@ def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_sample
                 if q is not None:
                     s["ttf_ratio_cog"] = s["ttf_mean_2d_mas"] / cog["ttf_mean_2d_mas"]
         res["photons"][str(int(ph))] = table_ph
-    res["crb"] = crb
+    res["crb"], res["cog_floor"] = crb, floor
     res["cpu_ms"] = {lb: {"per_frame": 1e3 * v[0] / max(v[1], 1),
                           "refit": (1e3 * v[2] / v[3]) if v[3] else None, "refits": v[3]}
                      for lb, v in cpu.items()}
@@ -295,17 +312,26 @@ def summary(result: dict) -> list[str]:
     return lines
 
 
+def _floor_cell(c: dict, ph: str) -> str:
+    """The case's CoG floor in mas and as a ratio to its CRB, or '-' for a run without it."""
+    f = c.get("cog_floor", {}).get(ph)
+    return "-" if f is None else f"{f['mean_2d_mas']:.1f} ({f['mean_2d_mas'] / c['crb'][ph]['mean_2d_mas']:.2f})"
+
+
 def markdown(result: dict, title: bool = True) -> str:
     cases = result["cases"]
     labels = [lb for lb in ESTIMATORS if any(lb in c["photons"]["1000"] for c in cases)]
     lines = ([f"# Accuracy on unseen sodium profiles ({result['mode']})", ""] if title else []) + [
              result["what"], "", "### Summary", ""] + summary(result) + [
              "", "Mean 2-D error in mas (ratio to the CRB of the same frames in brackets); raw, then "
-             "with the pupil-wide tip, tilt and focus removed.", ""]
+             "with the pupil-wide tip, tilt and focus removed. CoG floor: the photon-noise error "
+             "of a CoG whose bias and response are known exactly (`crb.cog_covariance`), the "
+             "least any calibrated CoG can reach on these frames.", ""]
     for key, title in (("", "raw"), ("ttf_", "tip, tilt and focus removed")):
         lines += [f"### {title}", "",
-                  "| family | detector | launch | tilts | photons | " + " | ".join(labels) + " | CRB |",
-                  "|" + "---|" * (6 + len(labels))]
+                  "| family | detector | launch | tilts | photons | " + " | ".join(labels)
+                  + " | CRB | CoG floor |",
+                  "|" + "---|" * (7 + len(labels))]
         for c in cases:
             for ph, row in c["photons"].items():
                 cells = []
@@ -314,20 +340,22 @@ def markdown(result: dict, title: bool = True) -> str:
                     cells.append("-" if s is None else
                                  f"{s[key + 'mean_2d_mas']:.1f} ({s[key + 'ratio_crb']:.2f})")
                 lines.append(f"| {c['family']} | {c['detector']} | {c['launch_m']:g} m | {c['tilts']} "
-                             f"| {ph} | " + " | ".join(cells) + f" | {c['crb'][ph]['mean_2d_mas']:.1f} |")
+                             f"| {ph} | " + " | ".join(cells) + f" | {c['crb'][ph]['mean_2d_mas']:.1f} | "
+                             + _floor_cell(c, ph) + " |")
         lines.append("")
     t3 = result.get("table3")
     if t3:
         lines += ["### The paper's Table 3 case (one subaperture, r = 14.75 m, evolving measured "
                   "profiles from profile 66, frozen flow 10 m/s, 1000 photons)", "",
-                  "| detector | " + " | ".join(labels) + " | CRB | paper ANN / CoG |",
-                  "|" + "---|" * (3 + len(labels))]
+                  "| detector | " + " | ".join(labels) + " | CRB | CoG floor | paper ANN / CoG |",
+                  "|" + "---|" * (4 + len(labels))]
         for c in t3:
             row = c["photons"]["1000"]
             cells = ["-" if lb not in row else
                      f"{row[lb]['mean_2d_mas']:.1f} ({row[lb]['ratio_cog']:.0%} of cog)" for lb in labels]
             lines.append(f"| {c['detector']} | " + " | ".join(cells)
-                         + f" | {c['crb']['1000']['mean_2d_mas']:.1f} | {c['paper_ann_over_cog']:.0%} |")
+                         + f" | {c['crb']['1000']['mean_2d_mas']:.1f} | {_floor_cell(c, '1000')} "
+                         f"| {c['paper_ann_over_cog']:.0%} |")
         lines.append("")
     lines += ["### CPU per full frame (ms, one core; per-frame part / mean refit)", "",
               "| estimator | per frame | set-up / refit | set-up + refits per case |", "|---|---|---|---|"]
@@ -441,6 +469,24 @@ def merge(stored: dict, new: dict, labels: tuple) -> dict:
     return stored
 
 
+def add_floors(result: dict, log=print) -> dict:
+    """``result`` (a stored run) with each case's ``cog_floor`` computed from its seeded
+    frames' models (no estimator runs); refuses unless each recomputed CRB is the stored one."""
+    for part, samples, single in (("cases", 8, False), ("table3", 50, True)):
+        for c in result.get(part, []):
+            base, truth, rend, _ = setup(c["family"], c["detector"], c["launch_m"], c["tilts"],
+                                         c["warm_frames"], c["scored_frames"], single=single)
+            crb, floor = bounds(base, truth, rend, c["warm_frames"], samples)
+            for ph, v in crb.items():
+                if not math.isclose(v["mean_2d_mas"], c["crb"][ph]["mean_2d_mas"], rel_tol=1e-9):
+                    raise SystemExit(f"floors: {_key(c)} at {ph} ph: the CRB is not the stored "
+                                     f"one (other frames); rerun the benchmark")
+            c["cog_floor"] = floor
+            log(f"  {_key(c)}: CoG floor / CRB " + ", ".join(
+                f"{ph} ph {floor[ph]['mean_2d_mas'] / crb[ph]['mean_2d_mas']:.3f}" for ph in crb))
+    return result
+
+
 def _save(out: dict, out_dir: Path, t_start: float, name: str = "accuracy") -> None:
     if "merged" not in out:                              # a merge keeps the stored run's
         out["seconds"] = round(time.time() - t_start, 1)
@@ -496,6 +542,14 @@ def rows(res: dict) -> list[dict]:
                              "target": {"cmf": "<= 1.1", "cog_pupil": "<= 1.1 centre, 1.3 side",
                                         "ann_conv": "<= 1.1"}.get(lb, ""),
                              "note": f"{len(vals)} cases ({res['mode']})"})
+        floor = [c["photons"][ph]["cog_pupil"]["mean_2d_mas"] / c["cog_floor"][ph]["mean_2d_mas"]
+                 for c in res["cases"] if c["tilts"] == "ar1" and "cog_floor" in c
+                 and "cog_pupil" in c["photons"][ph]]
+        if floor:
+            rows.append({"name": f"accuracy cog_pupil worst ratio to the CoG floor, AR(1), {ph} ph",
+                         "value": float(max(floor)), "unit": "x floor", "target": "",
+                         "note": f"{len(floor)} cases ({res['mode']}); the floor: a CoG with "
+                                 f"its bias and response known exactly (crb.cog_covariance)"})
         for det in ("polar", "cartesian"):         # the best estimator of each case, worst case
             best = [min(v["ratio_crb"] for k, v in c["photons"][ph].items() if k != "cog")
                     for c in res["cases"] if c["tilts"] == "ar1" and c["detector"] == det]
@@ -555,6 +609,9 @@ if __name__ == "__main__":
                          "frames and merged into its stored json / md (and docs, quick)")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
+    ap.add_argument("--floors", action="store_true",
+                    help="add each stored case's CoG floor (no estimator runs) to the mode's "
+                         "json / md (quick: and the docs)")
     ap.add_argument("--record", default="", metavar="LABEL",
                     help="with --tables-only: write LABEL's (an ann estimator's) per-family "
                          "summary into its model's metadata and the model card")
@@ -562,7 +619,14 @@ if __name__ == "__main__":
     if args.record:
         res = json.loads((HERE / "accuracy.json").read_text())
         record(args.record, ESTIMATORS[args.record][1]["model"], res)
-    if args.tables_only:
+    if args.floors:
+        name = "accuracy_long" if args.long else "accuracy"
+        res = add_floors(json.loads((HERE / f"{name}.json").read_text()))
+        (HERE / f"{name}.json").write_text(json.dumps(res, indent=1) + "\n")
+        (HERE / f"{name}.md").write_text(markdown(res))
+        if not args.long:
+            write_docs(res)
+    elif args.tables_only:
         res = json.loads((HERE / "accuracy.json").read_text())
         (HERE / "accuracy.md").write_text(markdown(res))
         write_docs(res)

@@ -90,18 +90,27 @@ def crb_covariances(sensor, image_at, truths: np.ndarray) -> np.ndarray:
     as in the frames) of frame ``k`` with the spot displaced by ``shift (n, 2)`` px, detector
     axes. Derivatives by central differences (``crb.model_derivatives``).
     """
-    from ..centroiding.crb import crb_covariance, model_derivatives
+    return bound_covariances(sensor, image_at, truths)["crb"]
 
-    out = []
+
+def bound_covariances(sensor, image_at, truths: np.ndarray) -> dict:
+    """``{"crb", "cog"}``, each ``(K*n, 2, 2)`` (detector axes, px^2): the Cramer-Rao bound
+    and the photon-noise floor of the response-inverted CoG (``crb.cog_covariance``) of the
+    same images; arguments as :func:`crb_covariances`, one set of derivatives for both."""
+    from ..centroiding.crb import cog_covariance, crb_covariance, model_derivatives
+
+    out = {"crb": [], "cog": []}
     for k, t in enumerate(truths):
         ok = np.isfinite(t).all(axis=1)
         t = np.where(ok[:, None], t, 0.0)
         mu, dx, dy = model_derivatives(lambda s, k=k: image_at(k, s), t.shape[0], shift=t)
-        cov = crb_covariance(np.maximum(mu - sensor.background_e, 0), dx, dy,
-                             read_noise_e=sensor.read_noise_e, background_e=sensor.background_e)
-        cov[~ok] = np.nan
-        out.append(cov)
-    return np.concatenate(out)
+        signal = np.maximum(mu - sensor.background_e, 0)
+        for key, fn in (("crb", crb_covariance), ("cog", cog_covariance)):
+            cov = fn(signal, dx, dy, read_noise_e=sensor.read_noise_e,
+                     background_e=sensor.background_e)
+            cov[~ok] = np.nan
+            out[key].append(cov)
+    return {key: np.concatenate(v) for key, v in out.items()}
 
 
 def simulator_model(data: BagData):

@@ -15,7 +15,7 @@ from .cog import CoG, TCoG, WCoG
 from .correlation import Correlation
 from .gmf import GMF, GridCMF
 from .ml import ML
-from .crb import crb, crb_covariance, crb_of, fisher, model_derivatives
+from .crb import cog_covariance, crb, crb_covariance, crb_of, fisher, model_derivatives
 
 _CLASSES = {"cog": CoG, "tcog": TCoG, "wcog": WCoG, "cmf": CMF, "corr": Correlation, "ann": ANN,
             "ml": ML, "gmf": GMF}
@@ -47,5 +47,5 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
 
 
 __all__ = ["ALGORITHMS", "make_centroider", "Centroider", "CoG", "TCoG", "WCoG", "CMF",
-           "Correlation", "ANN", "ML", "GMF", "GridCMF", "resolve_model", "crb", "crb_covariance", "crb_of", "fisher",
+           "Correlation", "ANN", "ML", "GMF", "GridCMF", "resolve_model", "cog_covariance", "crb", "crb_covariance", "crb_of", "fisher",
            "model_derivatives"]

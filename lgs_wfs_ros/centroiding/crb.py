@@ -65,6 +65,43 @@ def crb_covariance(model, dmodel_dx, dmodel_dy, read_noise_e: float = 0.0,
     return out
 
 
+def cog_covariance(model, dmodel_dx, dmodel_dy, read_noise_e: float = 0.0,
+                   background_e: float = 0.0) -> np.ndarray:
+    """``(n, 2, 2)`` covariance of the CoG whose response is inverted, px^2 (NaN if singular).
+
+    The photon-noise floor of every calibrated CoG (``cog`` with ``bias = pupil``): the plain
+    CoG ``c = sum x n / sum n`` of background-subtracted counts has, to first order in the
+    noise, the covariance ``S = sum var (x - c)(x - c)^T / N^2`` (``var = mu + b + s^2`` per
+    pixel, ``N`` the spot's counts); a calibration that inverts its response ``J = dc/ds``
+    (2 x 2, from the derivatives) turns it into ``J^-1 S J^-T``, in the derivatives' axes.
+    No calibration of a CoG gets under it: a spot whose light is spread (two layers, a broad
+    profile) keeps its second moment in ``S`` while the bound, :func:`crb_covariance`, reads
+    its sharp edges. Args as :func:`fisher` (``model`` in block pixel axes, column index x).
+    """
+    mu = np.asarray(model, dtype=float)
+    if mu.ndim != 3:
+        raise ValueError(f"model must be (n, p, p), got shape {mu.shape}")
+    n, p, q = mu.shape
+    yy, xx = np.mgrid[0:p, 0:q].astype(float)
+    flat = mu.reshape(n, -1)
+    coords = np.stack([xx.ravel(), yy.ravel()], axis=1)                # (pp, 2)
+    tot = flat.sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = flat @ coords / tot[:, None]                                # (n, 2)
+        dev = coords[None] - c[:, None, :]                              # (n, pp, 2)
+        var = np.maximum(flat, 0) + background_e + read_noise_e ** 2
+        s = np.einsum("np,npi,npj->nij", var, dev, dev) / tot[:, None, None] ** 2
+        d = np.stack([np.asarray(dmodel_dx, float).reshape(n, -1),
+                      np.asarray(dmodel_dy, float).reshape(n, -1)], axis=2)     # (n, pp, 2)
+        jac = np.einsum("npi,npa->nia", dev, d) / tot[:, None, None]    # dc_i / ds_a
+    out = np.full((n, 2, 2), np.nan)
+    det = np.linalg.det(np.nan_to_num(jac))
+    ok = np.isfinite(det) & (np.abs(det) > 0) & (tot > 0)
+    ji = np.linalg.inv(jac[ok])
+    out[ok] = ji @ s[ok] @ np.swapaxes(ji, 1, 2)
+    return out
+
+
 def crb(model, dmodel_dx, dmodel_dy, read_noise_e: float = 0.0, background_e: float = 0.0,
         flux_nuisance: bool = True) -> np.ndarray:
     """``(n, 2)`` Cramer-Rao bound on the std of (sx, sy), pixels, in the model's axes."""
