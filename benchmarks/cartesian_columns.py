@@ -69,15 +69,58 @@ def pairs(d: dict) -> refdata.MarginalPairs:
                                  np.asarray(d["r_m"]), np.asarray(d["photons"]))
 
 
-def validation(rng, n: int, family: str, photons: float):
+def draw_phased(rng: np.random.Generator, n: int) -> dict:
+    """``cartesian_filters.draw`` with each reference rendered at the spot's shift across e as
+    the calibrated CoG reads it (``cartesian_filters.rephase``), not at zero."""
+    from cartesian_filters import rephase
+    from lgs_wfs_ros.optics.detector import expose
+    from lgs_wfs_ros.optics.spots import SpotModel
+    from lgs_wfs_ros.sensor import Sensor
+    spec, sensor = refdata.MARGINAL_SPEC, Sensor()
+    render = sensor.replace(detector="cartesian")
+    r = rng.uniform(*spec.radius_m, size=n)
+    ang = rng.uniform(0.0, 2 * math.pi, size=n)
+    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
+    rho = refdata.broad_profiles(rng, n, spec)
+    img, _ = SpotModel(render, r, e, refdata.GRID, rho, max_shift_px=2.4).images(t)
+    ref_rho = refdata.calibrated(rng, rho, spec, sensor)
+    ref0, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
+    ref0 = np.clip(ref0, 0.0, None)
+    ref0 = ref0 / np.maximum(ref0.sum(axis=(1, 2), keepdims=True), 1e-12)
+    ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
+    counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
+                    True, "float32")
+    refs = rephase(render, r, e, ref_rho, ref0, counts)
+    return {"counts": counts.astype(np.float32), "refs": refs.astype(np.float32),
+            "y": t.astype(np.float32), "r_m": r, "e": e, "photons": ph}
+
+
+def cache_phased(out: Path, spots: int, part: int, parts: int, chunk: int = 20000,
+                 seed: int = 217) -> None:
+    """Chunks ``part, part + parts, ...`` of ``spots`` phased spots (and the monitor set with
+    part 0) as ``out/train_NNN.npz``."""
+    import time
+    out.mkdir(parents=True, exist_ok=True)
+    for c in range(part, -(-spots // chunk), parts):
+        f = out / f"train_{c:03d}.npz"
+        if not f.exists():
+            t0 = time.process_time()
+            np.savez(f, **draw_phased(np.random.default_rng([seed, c]), chunk))
+            print(f"{f.name}: {time.process_time() - t0:.0f} s", flush=True)
+    if part == 0 and not (out / "monitor.npz").exists():
+        np.savez(out / "monitor.npz", **draw_phased(np.random.default_rng([seed, 999]), 10000))
+
+
+def validation(rng, n: int, family: str, photons: float, phased: bool = False):
     """``(pairs, crb_e (n,) px^2, cog_e (n,) px)``: projected validation spots, each block's
     Cramer-Rao bound along e (``e^T I^-1 e``, its shift across e a nuisance) and the
-    calibrated CoG along e."""
+    calibrated CoG along e (``phased``: references at the spot's shift across e)."""
     from cartesian_filters import cog, validation_spots
-    d, _ = validation_spots(rng, n, family, photons)
+    d, _ = validation_spots(rng, n, family, photons, phased=phased)
     e = d["e"]
     crb_e = np.einsum("ni,nij,nj->n", e, np.linalg.inv(d["fisher"]), e)
-    cog_e = ((cog(d["counts"]) - cog(d["refs"])) * e).sum(axis=1)
+    cog_e = ((cog(d["counts"]) - cog(d["refs"])) * e).sum(axis=1)   # (phased: the across part cancels)
     return pairs(d), crb_e, cog_e
 
 
@@ -95,10 +138,19 @@ def main(argv=None) -> int:
     t.add_argument("out", type=Path)
     t.add_argument("--epochs", type=int, default=40)
     t.add_argument("--chunks", type=int, default=0)
+    g = sub.add_parser("data")
+    g.add_argument("dir", type=Path)
+    g.add_argument("--spots", type=int, default=600000)
+    g.add_argument("--part", type=int, default=0)
+    g.add_argument("--parts", type=int, default=1)
     v = sub.add_parser("validate")
+    v.add_argument("--phased", action="store_true")
     v.add_argument("model", type=Path)
     v.add_argument("--spots", type=int, default=2000)
     a = ap.parse_args(argv)
+    if a.cmd == "data":
+        cache_phased(a.dir, a.spots, a.part, a.parts)
+        return 0
     if a.cmd == "train":
         files = sorted(a.dir.glob("train_*.npz"))
         files = files[:a.chunks] if a.chunks else files
@@ -116,7 +168,7 @@ def main(argv=None) -> int:
     for fi, family in enumerate(("measured", "high", "sporadic", "broad", "narrow")):
         for photons in (316, 1000):
             pr, crb_e, cog_e = validation(np.random.default_rng([557, fi, photons]), a.spots, family,
-                                          photons)
+                                          photons, a.phased)
             with torch.no_grad():
                 tt = hypertrain._tensors(pr)
                 est = net(tt[0], tt[1], tt[2]).numpy()[:, 0]

@@ -275,10 +275,12 @@ def build_onnx(net, domain: dict, training: dict | None = None):
 
 # -- validation ------------------------------------------------------------------------------
 def validation_spots(rng: np.random.Generator, n: int, family: str, photons: float,
-                     sensor: Sensor = Sensor()) -> tuple[dict, np.ndarray]:
+                     sensor: Sensor = Sensor(), phased: bool = False) -> tuple[dict, np.ndarray]:
     """``(spots, crb (n,))``: cartesian spots of a validation family (the training block under
     the family's map), any angle, centre launch, shifts N(0, 0.46 px), the image normalised to
-    its light in the field, and each spot's 2-D Cramer-Rao bound (trace of I^-1), px^2."""
+    its light in the field, and each spot's 2-D Cramer-Rao bound (trace of I^-1), px^2.
+    ``phased``: each reference is rendered at the spot's shift across e as the calibrated CoG
+    reads it (:func:`phase_shift`) instead of at zero."""
     from marginal_validation import PUPIL_RADIUS_M, SHIFT_RMS_PX, family_profiles
     render = sensor.replace(detector="cartesian")
     r = PUPIL_RADIUS_M * np.sqrt(rng.uniform(0.02, 1.0, size=n))
@@ -302,9 +304,29 @@ def validation_spots(rng: np.random.Generator, n: int, family: str, photons: flo
     ref, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
     ref = ref / ref.sum(axis=(1, 2), keepdims=True)
     counts = expose(img / tot[:, None, None], np.full(n, float(photons)), rng, 0.0, 0.0, True, "float32")
+    if phased:
+        ref = rephase(render, r, e, ref_rho, ref, counts)
     return {"counts": counts.astype(np.float32), "refs": ref.astype(np.float32),
             "y": t.astype(np.float32), "r_m": r, "e": e, "photons": np.full(n, float(photons)),
             "fisher": fi}, crb
+
+
+def phase_shift(counts: np.ndarray, refs: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``(n, 2)`` px: the spot's shift across ``e`` as the calibrated CoG reads it (the CoG
+    of ``counts`` less that of the zero-shift ``refs``, projected on the normal of ``e``),
+    as a 2-D shift."""
+    v = np.stack([-e[:, 1], e[:, 0]], axis=1)
+    sv = np.clip(((cog(counts) - cog(refs)) * v).sum(axis=1), -2.4, 2.4)
+    return sv[:, None] * v
+
+
+def rephase(render, r, e, ref_rho, refs, counts) -> np.ndarray:
+    """``(n, p, p)`` unit-sum references of profiles ``ref_rho`` rendered at the shift across
+    e the calibrated CoG reads in ``counts`` (:func:`phase_shift`)."""
+    s = phase_shift(counts, refs, e)
+    out, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=2.5).images(s)
+    out = np.clip(out, 0.0, None)
+    return out / np.maximum(out.sum(axis=(1, 2), keepdims=True), 1e-12)
 
 
 def cog(a: np.ndarray) -> np.ndarray:
