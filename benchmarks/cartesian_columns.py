@@ -112,12 +112,14 @@ def cache_phased(out: Path, spots: int, part: int, parts: int, chunk: int = 2000
         np.savez(out / "monitor.npz", **draw_phased(np.random.default_rng([seed, 999]), 10000))
 
 
-def validation(rng, n: int, family: str, photons: float, phased: bool = False):
+def validation(rng, n: int, family: str, photons: float, phased: bool = False,
+               exact: bool = False):
     """``(pairs, crb_e (n,) px^2, cog_e (n,) px)``: projected validation spots, each block's
     Cramer-Rao bound along e (``e^T I^-1 e``, its shift across e a nuisance) and the
-    calibrated CoG along e (``phased``: references at the spot's shift across e)."""
+    calibrated CoG along e (``phased``: references at the spot's shift across e; ``exact``:
+    references of the true profile)."""
     from cartesian_filters import cog, validation_spots
-    d, _ = validation_spots(rng, n, family, photons, phased=phased)
+    d, _ = validation_spots(rng, n, family, photons, phased=phased, exact=exact)
     e = d["e"]
     crb_e = np.einsum("ni,nij,nj->n", e, np.linalg.inv(d["fisher"]), e)
     cog_e = ((cog(d["counts"]) - cog(d["refs"])) * e).sum(axis=1)   # (phased: the across part cancels)
@@ -145,6 +147,7 @@ def main(argv=None) -> int:
     g.add_argument("--parts", type=int, default=1)
     v = sub.add_parser("validate")
     v.add_argument("--phased", action="store_true")
+    v.add_argument("--exact", action="store_true", help="references of the true profile")
     v.add_argument("model", type=Path)
     v.add_argument("--spots", type=int, default=2000)
     a = ap.parse_args(argv)
@@ -163,20 +166,24 @@ def main(argv=None) -> int:
     net = hypertrain._torch_module(spec(saved["epochs"]))
     net.load_state_dict(saved["state"])
     net.eval()
-    print("| family | photons | bound along e, rms (px) | calibrated CoG / bound | network / bound |")
-    print("|---|---|---|---|---|")
+    print("| family | photons | bound along e, rms (px) | calibrated CoG / bound | network / bound "
+          "| network less its reading of the reference / bound |")
+    print("|---|---|---|---|---|---|")
     for fi, family in enumerate(("measured", "high", "sporadic", "broad", "narrow")):
         for photons in (316, 1000):
             pr, crb_e, cog_e = validation(np.random.default_rng([557, fi, photons]), a.spots, family,
-                                          photons, a.phased)
+                                          photons, a.phased, a.exact)
+            flat = refdata.MarginalPairs(pr.refs * pr.marg.sum(axis=1, keepdims=True), pr.refs,
+                                         pr.y, pr.r_m, pr.photons)     # the noise-free reference
             with torch.no_grad():
-                tt = hypertrain._tensors(pr)
+                tt, t0 = hypertrain._tensors(pr), hypertrain._tensors(flat)
                 est = net(tt[0], tt[1], tt[2]).numpy()[:, 0]
+                own = net(t0[0], t0[1], t0[2]).numpy()[:, 0]
             y = pr.y[:, 0]
             b = math.sqrt(crb_e.mean())
             rms = lambda x: math.sqrt(np.mean((x - y) ** 2))
-            print(f"| {family} | {photons} | {b:.4f} | {rms(cog_e) / b:.3f} | {rms(est) / b:.3f} |",
-                  flush=True)
+            print(f"| {family} | {photons} | {b:.4f} | {rms(cog_e) / b:.3f} | {rms(est) / b:.3f} "
+                  f"| {rms(est - own) / b:.3f} |", flush=True)
     return 0
 
 

@@ -275,12 +275,14 @@ def build_onnx(net, domain: dict, training: dict | None = None):
 
 # -- validation ------------------------------------------------------------------------------
 def validation_spots(rng: np.random.Generator, n: int, family: str, photons: float,
-                     sensor: Sensor = Sensor(), phased: bool = False) -> tuple[dict, np.ndarray]:
+                     sensor: Sensor = Sensor(), phased: bool = False,
+                     exact: bool = False) -> tuple[dict, np.ndarray]:
     """``(spots, crb (n,))``: cartesian spots of a validation family (the training block under
     the family's map), any angle, centre launch, shifts N(0, 0.46 px), the image normalised to
     its light in the field, and each spot's 2-D Cramer-Rao bound (trace of I^-1), px^2.
     ``phased``: each reference is rendered at the spot's shift across e as the calibrated CoG
-    reads it (:func:`phase_shift`) instead of at zero."""
+    reads it (:func:`phase_shift`) instead of at zero; ``exact``: references of the true
+    profile instead of the calibration's stale estimate (``refdata.calibrated``)."""
     from marginal_validation import PUPIL_RADIUS_M, SHIFT_RMS_PX, family_profiles
     render = sensor.replace(detector="cartesian")
     r = PUPIL_RADIUS_M * np.sqrt(rng.uniform(0.02, 1.0, size=n))
@@ -300,7 +302,7 @@ def validation_spots(rng: np.random.Generator, n: int, family: str, photons: flo
     fi = np.array([[(gr[a] * gr[b] * w).sum(axis=(1, 2)) for b in range(2)] for a in range(2)])
     fi = np.moveaxis(fi, 2, 0)
     crb = np.trace(np.linalg.inv(fi), axis1=1, axis2=2)
-    ref_rho = refdata.calibrated(rng, rho, refdata.MARGINAL_SPEC, sensor)
+    ref_rho = rho if exact else refdata.calibrated(rng, rho, refdata.MARGINAL_SPEC, sensor)
     ref, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
     ref = ref / ref.sum(axis=(1, 2), keepdims=True)
     counts = expose(img / tot[:, None, None], np.full(n, float(photons)), rng, 0.0, 0.0, True, "float32")
