@@ -3,6 +3,7 @@ replay, and refusal of bad bags through the CLI (one line, exit code 2, no trace
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -116,17 +117,20 @@ def test_ratios_are_taken_on_the_same_frames(tmp_path):
     cst = st[::10]
     model = (lambda k, s: None, truths[::10], "fake", cst)
     fake = np.broadcast_to(np.eye(2) * 0.01, (4, 2, 2)).copy()      # sigma 0.1 px per axis
-    orig = report.crb_covariances
-    report.crb_covariances = lambda sensor, image_at, t: fake
+    orig = report.bound_covariances
+    report.bound_covariances = lambda sensor, image_at, t: {"crb": fake, "cog": 1.44 * fake}
     try:
         res = report.analyse(data, image_model=model)
     finally:
-        report.crb_covariances = orig
+        report.bound_covariances = orig
     d = float(report.mean_abs_norm(fake[0]))
     assert res["algorithms"]["cmf"]["ratio_to_crb"] == pytest.approx(0.2 / d)
     assert res["algorithms"]["cog"]["ratio_to_crb"] == pytest.approx((0.05 * 2 + 0.2 * 2) / 4 / d)
     assert res["algorithms"]["cmf"]["ratio_to_crb_basis"] == "2 frames"
     assert "x CRB on 2 frames" in report.format_report(res)
+    # the CoG floor beside it: 1.2x the bound's expected |err| here
+    assert res["crb"]["cog_floor"]["mean_euclid"] == pytest.approx(1.2 * d)
+    assert re.search(r"CoG floor\s+" + f"{1.2 * d:.4f}", report.format_report(res))
 
 
 def test_binned_time_series_decimates_without_bias():

@@ -6,7 +6,9 @@ error, per-axis mean absolute error, RMS, bias; px and mas). The Cramer-Rao boun
 noise-free image model of the same frames: for a bag written by our simulator it is rebuilt
 from the simulator settings stored in the sensor description, at the truths of a sample of
 frames (:func:`simulator_model`); :mod:`..centroiding.crb` then bounds the position error
-(Poisson + read noise, flux a nuisance parameter). A bag from another tool has no such
+(Poisson + read noise, flux a nuisance parameter), and gives beside it the CoG floor, the
+error of a CoG whose bias and response are known exactly (``crb.cog_covariance``: what
+no calibration of a CoG gets under). A bag from another tool has no such
 model and its report says so. (Rebuilding the model from the noisy frames themselves was
 tried and rejected: the spot core is 1.19 px FWHM, so Fourier re-centring of undersampled
 frames rings and the bound collapses.) Neither the errors nor the CRB read the recorded frames,
@@ -305,9 +307,12 @@ def _crb_block(data, r_m, edges, mas, image_model=None):
         return {"method": "not computed: the bag carries no image model (simulator settings in "
                           "its sensor description)"}, None
     image_at, truths, note = got[:3]
-    cov = crb_covariances(data.sensor, image_at, truths)
+    bounds = bound_covariances(data.sensor, image_at, truths)
+    cov = bounds["crb"]
     block = crb_summary(cov, mas)
     block["frames"] = int(truths.shape[0])
+    block["cog_floor"] = {k: v for k, v in crb_summary(bounds["cog"], mas).items()
+                          if k.startswith(("mean_euclid", "mae"))}
     per_frame = None
     if len(got) > 3:
         per_frame = (np.asarray(got[3], np.int64), mean_abs_norm(cov).reshape(truths.shape[0], -1))
@@ -340,6 +345,11 @@ def format_report(res: dict) -> str:
     if "mean_euclid" in crb:
         lines.append(f"{'CRB':<12}{crb['mean_euclid']:>12.4f}{crb['mae']:>11.4f}{'':>27}"
                      f"{crb['mean_euclid_mas']:>13.1f}   (unbiased floor)")
+        fl = crb.get("cog_floor")
+        if fl:
+            lines.append(f"{'CoG floor':<12}{fl['mean_euclid']:>12.4f}{fl['mae']:>11.4f}{'':>27}"
+                         f"{fl['mean_euclid_mas']:>13.1f}   (a CoG with its bias and response "
+                         f"known exactly)")
     lines.append("")
     lines.append(f"{'algorithm':<16}{'x CoG':>8}{'x CRB':>8}{'MAE x CoG':>11}{'joined':>9}"
                  f"{'no slope':>10}{'dup':>6}")
