@@ -126,8 +126,8 @@ def validation(rng, n: int, family: str, photons: float, phased: bool = False,
     return pairs(d), crb_e, cog_e
 
 
-def spec(epochs: int) -> hypertrain.HyperSpec:
-    return hypertrain.HyperSpec(pixels=BINS, k=16, trunk=(32,), conv=(16, 16), kernel=5,
+def spec(epochs: int, k: int = 16, trunk: tuple = (32,), conv: tuple = (16, 16)) -> hypertrain.HyperSpec:
+    return hypertrain.HyperSpec(pixels=BINS, k=k, trunk=tuple(trunk), conv=tuple(conv), kernel=5,
                                 weight_power=1.0, epochs=epochs)
 
 
@@ -140,6 +140,9 @@ def main(argv=None) -> int:
     t.add_argument("out", type=Path)
     t.add_argument("--epochs", type=int, default=40)
     t.add_argument("--chunks", type=int, default=0)
+    t.add_argument("--k", type=int, default=16, help="filters")
+    t.add_argument("--trunk", type=int, nargs="+", default=[32])
+    t.add_argument("--conv", type=int, nargs="+", default=[16, 16])
     g = sub.add_parser("data")
     g.add_argument("dir", type=Path)
     g.add_argument("--spots", type=int, default=600000)
@@ -159,11 +162,13 @@ def main(argv=None) -> int:
         files = files[:a.chunks] if a.chunks else files
         data, mon = pairs(load(files)), pairs(load([a.dir / "monitor.npz"]))
         print(f"{data.y.shape[0]} spots projected", flush=True)
-        net, _ = hypertrain.fit(spec(a.epochs), data, mon)
-        torch.save({"epochs": a.epochs, "state": net.state_dict()}, a.out)
+        net, _ = hypertrain.fit(spec(a.epochs, a.k, a.trunk, a.conv), data, mon)
+        torch.save({"epochs": a.epochs, "k": a.k, "trunk": a.trunk, "conv": a.conv,
+                    "state": net.state_dict()}, a.out)
         return 0
     saved = torch.load(a.model)
-    net = hypertrain._torch_module(spec(saved["epochs"]))
+    net = hypertrain._torch_module(spec(saved["epochs"], saved.get("k", 16), saved.get("trunk", (32,)),
+                                       saved.get("conv", (16, 16))))
     net.load_state_dict(saved["state"])
     net.eval()
     print("| family | photons | bound along e, rms (px) | calibrated CoG / bound | network / bound "
