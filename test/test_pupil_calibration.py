@@ -586,3 +586,25 @@ def test_an_ann_recorded_before_its_bias_option_replays_without_it(tmp_path, mon
         assert res["options"]["ann"]["options"]["bias"] == ("none" if old else "pupil")
     plan = replay._plan(["ann"], ["ann_1k"], {}, {"ann": {"model": "ann_conv", "bias": "pupil"}})
     assert plan[0][2] == {"model": "ann_1k", "bias": "auto"}
+
+
+def test_one_radius_cannot_tell_a_lasting_tilt_from_the_profile_and_says_so():
+    """The paper's single subaperture, a tilt of 0.5 px along e held for the whole memory:
+    the calibrated CoG follows the spot (reads ~0 after its first refit) while the plain CoG
+    less its true bias reads the tilt; the description carries a warning (the node logs it), a full pupil's none."""
+    s = Sensor.paper_single("polar")
+    h, d, sm = true_spots(s, "measured")
+    cal_cog = table.build("cog", s, {"bias": "pupil", "pupil_period": 70})
+    plain = table.build("cog", s, {})
+    lay = geometry.layout(s)
+    tilt = np.array([[0.5, 0.0]])                   # block x is e on a polar detector
+    img, _ = sm.images(tilt)
+    frame = geometry.stack_to_frame((img / img.sum() * 1e5).astype(np.uint16), lay)
+    for _ in range(700):                            # 1 s: three time constants
+        got, ref = cal_cog.centroid(frame), plain.centroid(frame)
+    assert abs(got[0, 0]) < 0.05                   # the tilt went into the profile
+    assert abs(ref[0, 0] - cog_block(sm.images(np.zeros((1, 2)))[0])[0, 0] - 0.5) < 0.05
+    warning = cal_cog.describe()["warning"]
+    assert "one radius" in warning and "0.3 s" in warning
+    assert "warning" not in table.build("cog", SMALL, {"bias": "pupil"}).describe()
+    assert "warning" not in plain.describe()

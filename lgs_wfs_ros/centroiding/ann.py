@@ -787,11 +787,11 @@ class ANN(Centroider):
         d["model_sha256"] = self._sha256
         d["model_metadata"] = {k: v for k, v in self.meta.items()}
         d["domain"] = self.domain.summary()
-        if self.pupil is not None:
-            d["pupil_calibration"] = self.pupil.describe()
         if self.domain.reasons:
             d["warning"] = (f"{self.domain.count} of {self.n} subapertures outside {self.model_name}'s "
                             "training domain (run with out_of_domain = warn): " + "; ".join(self.domain.reasons))
+        if self.pupil is not None:
+            pupil_cal.describe_into(d, self.pupil)
         return d
 
     @property

@@ -561,7 +561,7 @@ class CMF(Centroider):
         d = super().describe()
         d["reference_frames_seen"] = self.ref.frames
         if self.pupil is not None:
-            d["pupil_calibration"] = self.pupil.describe()
+            pupil_cal.describe_into(d, self.pupil)
         if self.linearize:
             d["linearize"] = (f"response calibrated over +-{self.linearize_extent:g} px, "
                               "inverted per frame")

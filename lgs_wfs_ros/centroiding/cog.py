@@ -134,7 +134,7 @@ class CoG(Centroider):
     def describe(self) -> dict:
         d = super().describe()
         if self.pupil is not None:
-            d["pupil_calibration"] = self.pupil.describe()
+            pupil_cal.describe_into(d, self.pupil)
         return d
 
     def _centroid_pixels(self, stack, total, ok):

@@ -105,7 +105,7 @@ class Correlation(Centroider):
     def describe(self) -> dict:
         d = super().describe()
         if self.pupil is not None:
-            d["pupil_calibration"] = self.pupil.describe()
+            pupil_cal.describe_into(d, self.pupil)
         return d
 
     def centroid(self, data) -> np.ndarray:

@@ -626,6 +626,21 @@ class PupilCalibration:
         tot = img0.reshape(self.n, -1).sum(axis=1)
         return self.spots().image_at(shift_block) * (flux / np.where(tot > 0, tot, 1.0))[:, None, None]
 
+    @property
+    def warning(self) -> str:
+        """What this calibration cannot do on its sensor ('' when nothing): with a single
+        radius a tilt along e that lasts longer than the memory is indistinguishable from
+        the profile (measured on the paper's single subaperture with frozen flow: the
+        calibrated estimators at 1.8-2.5x the plain CoG's error, docs/accuracy.md)."""
+        radii = np.unique(np.round(np.asarray(self.layout.r_m, float), 2))
+        if radii.size >= 2:
+            return ""
+        return (f"pupil calibration on {self.n} subaperture(s) at one radius: a tilt along the "
+                f"elongation that outlasts its memory ({self.time_constant_s:g} s) enters the "
+                f"profile and the references follow the spot (the paper's single subaperture "
+                f"with frozen flow: 1.8-2.5x the plain cog's error, docs/accuracy.md); "
+                f"independent tilts average out")
+
     def describe(self) -> dict:
         h, d = self.profile
         return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
@@ -671,3 +686,12 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
 
 
 __all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
+
+
+def describe_into(d: dict, pupil: PupilCalibration) -> dict:
+    """``d`` (a centroider's description) with ``pupil``'s under ``pupil_calibration`` and its
+    :attr:`PupilCalibration.warning`, if any, joined to ``d["warning"]`` (a node logs it)."""
+    d["pupil_calibration"] = pupil.describe()
+    if pupil.warning:
+        d["warning"] = "; ".join(w for w in (d.get("warning"), pupil.warning) if w)
+    return d
