@@ -685,9 +685,6 @@ def from_options(sensor, options: dict, background: float) -> PupilCalibration:
                             altitude_s=o["pupil_altitude_s"])
 
 
-__all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options"]
-
-
 def describe_into(d: dict, pupil: PupilCalibration) -> dict:
     """``d`` (a centroider's description) with ``pupil``'s under ``pupil_calibration`` and its
     :attr:`PupilCalibration.warning`, if any, joined to ``d["warning"]`` (a node logs it)."""
@@ -695,3 +692,6 @@ def describe_into(d: dict, pupil: PupilCalibration) -> dict:
     if pupil.warning:
         d["warning"] = "; ".join(w for w in (d.get("warning"), pupil.warning) if w)
     return d
+
+
+__all__ = ["PupilCalibration", "OPTION_DEFAULTS", "from_options", "describe_into"]
