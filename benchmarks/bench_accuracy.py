@@ -74,6 +74,9 @@ ESTIMATORS = {
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
     "ann_hyper": ("ann", {"model": "ann_hyper"}), # polar only; the default polar ann until 2026-11-26
     "ann_conv": ("ann", {"model": "ann_conv"}),   # polar only; the default polar ann
+    # ann_conv on a cartesian detector too: there it reads bins along e, pixels split by
+    # overlap (centroiding/bins_along_e.py), outside its polar training domain (warn)
+    "ann_conv_bins": ("ann", {"model": "ann_conv", "out_of_domain": "warn"}),
     # with the altitude tracker (off by default: it takes the atmosphere's focus too)
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),

@@ -24,7 +24,11 @@ is accepted too):
                             a function of block x: along e), its reference input the same
                             sums of the reference (unit sum), its output ``(batch, 1)`` the
                             shift along e; block y (across e: the core alone) is the
-                            pupil-calibrated CoG of the row sums (``learning/margtrain.py``)
+                            pupil-calibrated CoG of the row sums (``learning/margtrain.py``).
+                            On a cartesian detector (outside such a model's training domain:
+                            run with ``out_of_domain = warn``) it reads the light in 1 px
+                            bins along e with each pixel split by its overlap
+                            (:mod:`.bins_along_e`), and across e the pupil-calibrated CoG
 ``lgs_wfs.hyper``           bool (default false): a marginals model whose reference sets
                             per-subaperture filters (``learning/hypertrain.py``): the graph's
                             tensors ``lgs_wfs.hyper_outputs`` (default ``["filters", "fbias"]``)
@@ -67,6 +71,7 @@ from pathlib import Path
 import numpy as np
 
 from ..optics import geometry
+from . import bins_along_e
 from . import domain as model_domain
 from . import kernels
 from . import pupil as pupil_cal
@@ -452,7 +457,8 @@ class ANN(Centroider):
         if md["pixels"] != self.p:
             raise ValueError(f"ann: model {self.path.name} takes {md['pixels']} x {md['pixels']} "
                              f"pixels, the sensor has {self.p} x {self.p}")
-        if md["detector"] not in ("any", sensor.detector):
+        projectable = md["input"] == "marginals" and sensor.detector == "cartesian"
+        if md["detector"] not in ("any", sensor.detector) and not projectable:
             raise ValueError(f"ann: model {self.path.name} is for a {md['detector']} detector, "
                              f"the sensor is {sensor.detector}")
         inputs = {i.name: i for i in self.session.get_inputs()}
@@ -461,6 +467,11 @@ class ANN(Centroider):
         if self.input_name not in inputs:
             raise ValueError(f"ann: model has no input {self.input_name!r} (inputs: {list(inputs)})")
         self.marginals = md["input"] == "marginals"
+        # a marginals model on a cartesian detector: bins along e, pixels split by overlap
+        self._bins = None
+        if projectable:         # (start int8, shares uint8) for the frame pass, (start, w) for numpy
+            q = bins_along_e.quantised(*bins_along_e.overlap_weights(self.layout.e, self.p))
+            self._bins, self._bins_q = (q[0], q[2]), q[:2]
         _check_width(inputs[self.input_name], self.p if self.marginals else self.p * self.p,
                      "pixel input", self.n)
         self.cond, self._offset = None, None
@@ -532,8 +543,38 @@ class ANN(Centroider):
         if self._debias:
             reading = self._reading(ref)
         else:
-            reading = np.stack([np.zeros(self.n), self._row_cog(ref.sum(axis=2))], axis=1)
+            reading = self._combine(np.zeros(self.n), self._across(ref))
         return np.nan_to_num(reading, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def _along(self, stack: np.ndarray) -> np.ndarray:
+        """``(n, p)`` float32: the light of ``stack (n, p, p)`` in 1 px bins along e: the
+        column sums on a polar detector, :mod:`.bins_along_e` on a cartesian one."""
+        if self._bins is None:
+            return np.ascontiguousarray(stack.sum(axis=1), dtype=np.float32)
+        flat = np.asarray(stack).reshape(self.n, -1)
+        return np.ascontiguousarray(bins_along_e.project(flat, *self._bins), dtype=np.float32)
+
+    def _across(self, stack: np.ndarray) -> np.ndarray:
+        """``(n,)`` px from the block centre: the CoG across e of ``stack (n, p, p)`` (block y's
+        row sums on a polar detector; NaN without light)."""
+        if self._bins is None:
+            return self._row_cog(stack.sum(axis=2))
+        e = np.asarray(self.layout.e, dtype=np.float64)
+        pos = np.arange(self.p) - self.centre
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tot = stack.sum(axis=(1, 2), dtype=np.float64)
+            cx = stack.sum(axis=1, dtype=np.float64) @ pos / tot
+            cy = stack.sum(axis=2, dtype=np.float64) @ pos / tot
+        return -e[:, 1] * cx + e[:, 0] * cy
+
+    def _combine(self, along: np.ndarray, across: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` block axes, px, of shifts ``along`` e and ``across`` it (``(n,)``
+        each)."""
+        if self._bins is None:
+            return np.stack([along, across], axis=1).astype(np.float64)
+        e = np.asarray(self.layout.e, dtype=np.float64)
+        v = np.stack([-e[:, 1], e[:, 0]], axis=1)
+        return along[:, None] * e + across[:, None] * v
 
     def _row_cog(self, rows: np.ndarray) -> np.ndarray:
         """``(n,)`` CoG of the row sums ``rows (n, p)``, px from the block centre (block y of
@@ -546,9 +587,8 @@ class ANN(Centroider):
         no offset removed and nothing fed to the calibration."""
         stack = np.asarray(stack, dtype=np.float32)
         if self.marginals:
-            y = self._row_cog(stack.sum(axis=2))
-            x = self._marginals_out(np.ascontiguousarray(stack.sum(axis=1)))[:, 0] * self.meta["output_scale"]
-            return np.stack([x, y], axis=1).astype(np.float64)
+            x = self._marginals_out(self._along(stack))[:, 0] * self.meta["output_scale"]
+            return self._combine(x, self._across(stack))
         if self._refit is not None:
             out = self._hyper_pixels_out(stack.reshape(self.n, -1))
         else:
@@ -563,8 +603,8 @@ class ANN(Centroider):
         """``(n, h)`` float32: the calibration's current references (unit sum, block axes)
         through the model's reference matrix."""
         ref = self.pupil.reference_image()
-        if self.marginals:                  # column sums (along e)
-            ref = ref.sum(axis=1)
+        if self.marginals:                  # bins along e (polar: the column sums)
+            ref = self._along(ref)
         ref = ref.reshape(self.n, -1)
         tot = ref.sum(axis=1, keepdims=True)
         ref = np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
@@ -682,6 +722,8 @@ class ANN(Centroider):
         integer frame, added into the pupil calibration's sums as ``ml`` does; a refit
         installs its references for this frame, as for ``cog`` with ``bias = pupil``); the
         network on the column sums gives block x, the calibrated CoG of the row sums y."""
+        if self._bins is not None:
+            return self._centroid_bins(raw)
         if kernels.fits(raw, self.sensor.frame_shape):
             acc = self.pupil.marginal_buffer()
             marg = kernels.block_marginals(raw, kernels.origins(self), self.p, acc)
@@ -701,6 +743,30 @@ class ANN(Centroider):
         ok = np.isfinite(total) & (total > 0)
         out = np.stack([out[:, 0] * self.meta["output_scale"], self._row_cog(marg[:, 1])], axis=1)
         return self.finish(self._debiased(out), ok)
+
+    def _centroid_bins(self, raw: np.ndarray) -> np.ndarray:
+        """A marginals model on a cartesian detector: each block's light in bins along e
+        (:mod:`.bins_along_e`) through the network, across e the CoG; the frame feeds the
+        pupil calibration first (a refit installs its references for this frame)."""
+        if kernels.fits(raw, self.sensor.frame_shape):     # one compiled pass
+            refit = self.pupil.observe_frame(raw)
+            along, mom = kernels.block_bins(raw, kernels.origins(self), self.p, *self._bins_q)
+            ok = mom[:, 0] > 0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                c = (mom[:, 1:] - self.centre * mom[:, :1]) / mom[:, :1]        # block CoG (x, y)
+            e = self.layout.e
+            across = -e[:, 1] * c[:, 0] + e[:, 0] * c[:, 1]
+        else:
+            flat = self.float_stack(raw).reshape(self.n, -1)
+            tot = flat.sum(axis=1, dtype=np.float64)
+            ok = np.isfinite(tot) & (tot > 0)
+            refit = self.pupil.observe(np.asarray(flat, dtype=np.float64), ok)
+            stack = np.where(ok[:, None], flat, 0.0).reshape(self.n, self.p, self.p)
+            along, across = self._along(stack), self._across(stack)
+        if refit:
+            self._install_reference()
+        x = self._marginals_out(np.ascontiguousarray(along))[:, 0] * self.meta["output_scale"]
+        return self.finish(self._debiased(self._combine(x, across)), ok)
 
     def _marginals_out(self, x: np.ndarray) -> np.ndarray:
         """A marginals model's raw output ``(n, 1)`` on the column sums ``x (n, p)``

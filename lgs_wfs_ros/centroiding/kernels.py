@@ -311,6 +311,52 @@ def _block_marginals_impl(frame, origins, p, acc, out):
         _block_sums(frame, origins[b, 0], origins[b, 1], p, col, out[b], acc, b)
 
 
+def _block_bins_impl(frame, origins, p, start, w, bins, moments):
+    # bins (n, p) float32: each pixel's count split over bins start, start + 1, start + 2
+    # by its shares w (n, p*p, 2) uint8 (of 255: the first and the third; the second the
+    # rest), a bin outside 0..p-1 dropped; moments (n, 3) float64: the block's total, sum
+    # of x and sum of y (pixel indices from 0, exact integers). Even and odd pixels of a
+    # row add into two buffers: neighbours hit the same bins, and two buffers let their
+    # additions overlap instead of waiting on each other
+    n = origins.shape[0]
+    scale = np.float32(1.0 / 255.0)
+    even = np.zeros(p + 4, dtype=np.float32)          # bins -2 .. p + 1
+    odd = np.zeros(p + 4, dtype=np.float32)
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        for k in range(p + 4):
+            even[k] = 0.0
+            odd[k] = 0.0
+        s = 0
+        sx = 0
+        sy = 0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            rs = np.int32(0)
+            rx = np.int32(0)
+            for j in range(p):
+                q = np.int32(row[j])
+                rs += q
+                rx += q * np.int32(j)
+                pix = i * p + j
+                k = start[b, pix] + 2
+                w0 = np.int32(w[b, pix, 0])
+                w2 = np.int32(w[b, pix, 1])
+                acc = even if j % 2 == 0 else odd
+                acc[k] += np.float32(q * w0)
+                acc[k + 1] += np.float32(q * (255 - w0 - w2))
+                acc[k + 2] += np.float32(q * w2)
+            s += rs
+            sx += rx
+            sy += rs * i
+        for k in range(p):
+            bins[b, k] = (even[k + 2] + odd[k + 2]) * scale
+        moments[b, 0] = s
+        moments[b, 1] = sx
+        moments[b, 2] = sy
+
+
 def _ml_line_impl(mg, lg, j, base, tot_norm):
     # log-likelihood of one axis' marginals mg (p,) against the shift whose marginals are
     # columns base .. base + p - 1 of phase j of the phase table lg (S, W)
@@ -563,6 +609,7 @@ if AVAILABLE:
     _block_sums = numba.njit(cache=True, nogil=True, inline="always")(_block_sums_impl)
     _ml_search = numba.njit(cache=True, nogil=True)(_ml_search_impl)
     _block_marginals = numba.njit(cache=True, nogil=True)(_block_marginals_impl)
+    _block_bins = numba.njit(cache=True, nogil=True)(_block_bins_impl)
     _hyper_contract = numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})(
         _hyper_contract_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
@@ -682,6 +729,22 @@ def block_marginals(frame: np.ndarray, origins: np.ndarray, p: int,
         out = np.empty((n, 2, p), dtype=np.float32)
     _block_marginals(frame, origins, int(p), np.empty((0, 2, p)) if acc is None else acc, out)
     return out
+
+
+def block_bins(frame: np.ndarray, origins: np.ndarray, p: int, start: np.ndarray,
+               shares: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(bins (n, p) float32, moments (n, 3) float64)`` of each valid block of an integer
+    frame: its light in 1 px bins along e, each pixel split by its shares
+    (:func:`.bins_along_e.quantised`: ``start (n, p*p)`` int8, ``shares (n, p*p, 2)`` uint8),
+    and its total, sum of x and sum of y (pixel indices from 0)."""
+    n = origins.shape[0]
+    if start.shape != (n, p * p) or shares.shape != (n, p * p, 2):
+        raise ValueError("block_bins: start and shares must be bins_along_e.quantised of the n blocks")
+    bins = np.empty((n, p), dtype=np.float32)
+    moments = np.empty((n, 3))
+    _block_bins(frame, origins, int(p), np.ascontiguousarray(start, dtype=np.int8),
+                np.ascontiguousarray(shares, dtype=np.uint8), bins, moments)
+    return bins, moments
 
 
 def hyper_contract(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -822,6 +885,7 @@ def warm_up() -> None:
                     np.ones((9, 1, 2)), np.zeros((9, 1, 2)), np.array([-0.5, 0.0, 0.5]))
         block_marginals(f, o, 4, np.zeros((1, 2, 4)))
         block_marginals(f, o, 4)
+        block_bins(f, o, 4, np.zeros((1, 16), np.int8), np.zeros((1, 16, 2), np.uint8))
         corr_peak(f, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     hyper_contract(np.zeros((1, 4), np.float32), np.zeros((1, 2, 4), np.float32), np.zeros((1, 2), np.float32))

@@ -1,0 +1,112 @@
+"""A block's light in 1 px bins along its elongation, each pixel split by its overlap.
+
+On a polar detector the elongation ``e`` runs along the block's pixel columns, and the
+column sums are the light in 1 px bins along ``e``: what the marginal networks
+(``ann_conv``) and ``ml`` read. On a cartesian detector ``e`` points anywhere. Here each
+pixel (a unit square) is projected onto ``e``: its footprint along ``e`` is the
+convolution of two boxes of widths ``|e_x|`` and ``|e_y|`` (a trapezoid, at most sqrt(2)
+px wide), and its count is split between the ``p`` bins ``[k - p/2, k - p/2 + 1)`` px
+from the block centre (``k = 0..p-1``) by the share of that footprint in each. Light
+beyond +-p/2 px along ``e`` (a diagonal spot's far corners) is dropped, as a polar field
+drops it. On a polar block (``e = (1, 0)``) the bins are the column sums exactly.
+
+Such bins keep the block's information along ``e`` (1.00-1.006x its Cramer-Rao bound on
+the unseen families, docs/ann_ref.md "What a projection keeps"); whole pixels moved to the
+bin of their centre lose 2-6 %. They share pixels, so they are correlated, not Poisson.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: pixels of a block whose footprint along e can touch a bin: at most 3 (width <= sqrt 2)
+SPAN = 3
+
+
+def _ramp_integral(x: np.ndarray) -> np.ndarray:
+    """``int_-inf^x clip(s, 0, 1) ds``."""
+    return np.where(x <= 0, 0.0, np.where(x < 1, 0.5 * x * x, x - 0.5))
+
+
+def _footprint_cdf(t: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``P(a s1 + b s2 <= t)`` for ``s1, s2`` uniform on (-1/2, 1/2), ``a >= b >= 0``
+    (broadcast): the share of a unit pixel's projected footprint below ``t`` px from its
+    centre."""
+    box = np.clip(t / np.maximum(a, 1e-12) + 0.5, 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hi = (t + b / 2) / a + 0.5
+        lo = (t - b / 2) / a + 0.5
+        trap = (a / b) * (_ramp_integral(hi) - _ramp_integral(lo))
+    return np.where(b > 1e-9, trap, box)
+
+
+def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's share in the bins along e.
+
+    Args:
+        e_pixel: ``(n, 2)`` unit vectors of the elongation in the block's pixel axes (x
+            along the columns, y along the rows).
+        p: pixels per block side (and bins).
+
+    Returns:
+        ``(start, w)``: ``start (n, p*p)`` int32, the first bin a pixel touches (row-major
+        pixels, may lie outside ``0..p-1``); ``w (n, p*p, SPAN)`` float32, its shares in
+        bins ``start .. start + 2`` (summing to 1; :func:`project` drops the bins outside
+        ``0..p-1``).
+    """
+    e = np.asarray(e_pixel, dtype=np.float64)
+    c = (p - 1) / 2.0
+    y, x = np.indices((p, p), dtype=np.float64)
+    u0 = (x.ravel() - c)[None, :] * e[:, :1] + (y.ravel() - c)[None, :] * e[:, 1:]  # (n, pp)
+    ax, ay = np.abs(e[:, 0]), np.abs(e[:, 1])
+    a = np.maximum(ax, ay)[:, None, None]
+    b = np.minimum(ax, ay)[:, None, None]
+    half = 0.5 * (a[:, :, 0] + b[:, :, 0])                                          # (n, 1)
+    start = np.floor(u0 - half + p / 2 + 1e-9).astype(np.int64)                     # (n, pp)
+    k = start[..., None] + np.arange(SPAN)                                          # (n, pp, 3)
+    lo = k - p / 2 - u0[..., None]                                                  # bin edges, px from the pixel centre
+    w = _footprint_cdf(lo + 1.0, a, b) - _footprint_cdf(lo, a, b)
+    return start.astype(np.int32), w.astype(np.float32)
+
+
+def quantised(start: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shares in 1/255ths, as the compiled frame pass reads them
+    (:func:`.kernels.block_bins`).
+
+    Returns:
+        ``(start8, shares, wq)``: ``start8 (n, p*p)`` int8 in ``-2..p-1`` (a pixel whose
+        three bins all lie outside ``0..p-1`` gets ``-2`` and all its light in bin ``-1``,
+        dropped); ``shares (n, p*p, 2)`` uint8, the first and third bins' shares (the
+        second gets the rest); ``wq (n, p*p, 3)`` float32, the same split for
+        :func:`project` with ``start8``. Data and references projected with the same split
+        stay comparable; the rounding moves each pixel's split by at most 1/510 of its
+        count.
+    """
+    p = int(round(start.shape[1] ** 0.5))
+    q0 = np.rint(w[..., 0] * 255).astype(np.int32)
+    q2 = np.rint(w[..., 2] * 255).astype(np.int32)
+    away = (start + SPAN - 1 < 0) | (start > p - 1)
+    start8 = np.where(away, -2, start).astype(np.int8)
+    q0 = np.where(away, 0, q0)
+    q2 = np.where(away, 0, q2)
+    wq = np.stack([q0, 255 - q0 - q2, q2], axis=-1).astype(np.float32) / 255
+    return start8, np.stack([q0, q2], axis=-1).astype(np.uint8), wq.astype(np.float32)
+
+
+def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``(n, p)`` float64: the light of blocks ``flat (n, p*p)`` in their bins along e
+    (:func:`overlap_weights`); a NaN pixel makes its block's bins NaN."""
+    flat = np.asarray(flat, dtype=np.float64)
+    n, pp = flat.shape
+    p = int(round(pp ** 0.5))
+    k = start[..., None].astype(np.int64) + np.arange(SPAN)                          # (n, pp, 3)
+    ok = (k >= 0) & (k < p)
+    rows = np.where(ok, k + p * np.arange(n)[:, None, None], n * p)                  # n*p: a sink
+    vals = flat[..., None] * w
+    out = np.bincount(rows.ravel(), vals.ravel(), n * p + 1)[:n * p].reshape(n, p)
+    bad = ~np.isfinite(flat).all(axis=1)
+    out[bad] = np.nan
+    return out
+
+
+__all__ = ["SPAN", "overlap_weights", "project", "quantised"]
