@@ -128,6 +128,8 @@ def run(quick: bool = False) -> list[dict]:
         ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
         ("corr (default: pupil reference, gauss 3x3 peak; per-frame part)", "corr",
          {"pupil_period": 1000000}, "< 1 ms", reps),
+        ("ann ann_conv on bins along e (cartesian detector, out_of_domain warn; per-frame part)",
+         "ann", {"model": "ann_conv", "out_of_domain": "warn", "pupil_period": 1000000}, "< 1 ms", reps),
     ]
     for label, name, opts, target, r in cases:
         c = make_centroider(name, sensor, **opts)
