@@ -339,6 +339,8 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
                 q = np.int32(row[j])
                 rs += q
                 rx += q * np.int32(j)
+                if q == 0:                          # dark pixels cost nothing
+                    continue
                 pix = i * p + j
                 k = start[b, pix] + 2
                 w0 = np.int32(w[b, pix, 0])
