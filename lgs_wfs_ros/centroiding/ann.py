@@ -559,13 +559,17 @@ class ANN(Centroider):
         row sums on a polar detector; NaN without light)."""
         if self._bins is None:
             return self._row_cog(stack.sum(axis=2))
-        e = np.asarray(self.layout.e, dtype=np.float64)
         pos = np.arange(self.p) - self.centre
         with np.errstate(divide="ignore", invalid="ignore"):
             tot = stack.sum(axis=(1, 2), dtype=np.float64)
-            cx = stack.sum(axis=1, dtype=np.float64) @ pos / tot
-            cy = stack.sum(axis=2, dtype=np.float64) @ pos / tot
-        return -e[:, 1] * cx + e[:, 0] * cy
+            c = np.stack([stack.sum(axis=1, dtype=np.float64) @ pos,
+                          stack.sum(axis=2, dtype=np.float64) @ pos], axis=1) / tot[:, None]
+        return self._across_e(c)
+
+    def _across_e(self, cog: np.ndarray) -> np.ndarray:
+        """``(n,)`` the component across e of block CoGs ``cog (n, 2)`` (px, block axes)."""
+        e = self.layout.e
+        return -e[:, 1] * cog[:, 0] + e[:, 0] * cog[:, 1]
 
     def _combine(self, along: np.ndarray, across: np.ndarray) -> np.ndarray:
         """``(n, 2)`` block axes, px, of shifts ``along`` e and ``across`` it (``(n,)``
@@ -753,9 +757,7 @@ class ANN(Centroider):
             along, mom = kernels.block_bins(raw, kernels.origins(self), self.p, *self._bins_q)
             ok = mom[:, 0] > 0
             with np.errstate(divide="ignore", invalid="ignore"):
-                c = (mom[:, 1:] - self.centre * mom[:, :1]) / mom[:, :1]        # block CoG (x, y)
-            e = self.layout.e
-            across = -e[:, 1] * c[:, 0] + e[:, 0] * c[:, 1]
+                across = self._across_e((mom[:, 1:] - self.centre * mom[:, :1]) / mom[:, :1])
         else:
             flat = self.float_stack(raw).reshape(self.n, -1)
             tot = flat.sum(axis=1, dtype=np.float64)
