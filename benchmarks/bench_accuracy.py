@@ -82,10 +82,10 @@ ESTIMATORS = {
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),
 }
 QUICK_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "corr", "ann_pupil", "ann_marg",
-                    "ann_hyper", "ann_conv", "ml_alt", "cmf_alt")
+                    "ann_hyper", "ann_conv", "ann_conv_bins", "ml_alt", "cmf_alt")
 #: the estimators issue 14's and 15's "done when" name, for --long
 LONG_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ann_conv",
-                   "ml_alt", "cmf_alt")
+                   "ann_conv_bins", "ml_alt", "cmf_alt")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 
