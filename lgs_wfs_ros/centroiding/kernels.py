@@ -315,9 +315,9 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
     # bins (n, p) float32: each pixel's count split over bins start, start + 1, start + 2
     # by its shares w (n, p*p, 2) uint8 (of 255: the first and the third; the second the
     # rest), a bin outside 0..p-1 dropped; moments (n, 3) float64: the block's total, sum
-    # of x and sum of y (pixel indices from 0, exact integers). Even and odd pixels of a
-    # row add into two buffers: neighbours hit the same bins, and two buffers let their
-    # additions overlap instead of waiting on each other
+    # of x and sum of y (_block_moments). Even and odd pixels of a row add into two
+    # buffers: neighbours hit the same bins, and two buffers let their additions overlap
+    # instead of waiting on each other
     n = origins.shape[0]
     scale = np.float32(1.0 / 255.0)
     even = np.zeros(p + 4, dtype=np.float32)          # bins -2 .. p + 1
@@ -325,20 +325,14 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
     for b in range(n):
         r0 = origins[b, 0]
         c0 = origins[b, 1]
+        moments[b, 0], moments[b, 1], moments[b, 2] = _block_moments(frame, r0, c0, p)
         for k in range(p + 4):
             even[k] = 0.0
             odd[k] = 0.0
-        s = 0
-        sx = 0
-        sy = 0
         for i in range(p):
             row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
-            rx = np.int32(0)
             for j in range(p):
                 q = np.int32(row[j])
-                rs += q
-                rx += q * np.int32(j)
                 if q == 0:                          # dark pixels cost nothing
                     continue
                 pix = i * p + j
@@ -349,14 +343,8 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
                 acc[k] += np.float32(q * w0)
                 acc[k + 1] += np.float32(q * (255 - w0 - w2))
                 acc[k + 2] += np.float32(q * w2)
-            s += rs
-            sx += rx
-            sy += rs * i
         for k in range(p):
             bins[b, k] = (even[k + 2] + odd[k + 2]) * scale
-        moments[b, 0] = s
-        moments[b, 1] = sx
-        moments[b, 2] = sy
 
 
 def _ml_line_impl(mg, lg, j, base, tot_norm):
