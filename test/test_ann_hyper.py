@@ -284,13 +284,14 @@ def test_lgs_wfs_train_writes_the_marginal_models_record(name, tmp_path):
     assert rec["recipe"]["name"] == name and rec["parameters"] > 0 and rec["epochs_run"] >= 2
     assert rec["photons_range"] == list(refdata.MARGINAL_SPEC.photons)
     assert rec["check"]["n"] == margtrain.CHECK_N and rec["check"]["seed"] == margtrain.CHECK_SEED
-    pairs = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
+    dets = tuple(rec["recipe"]["detectors"])             # ann_conv: both detectors
+    pairs = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False, detectors=dets)
     along = np.abs(margtrain.predict(path, pairs) - pairs.y).mean()
     assert rec["check"]["mean_err_px"] == pytest.approx(along, rel=1e-3)   # what the model does
     assert ("spec" in rec) == (name != "ann_marg")
     if name == "ann_conv":                   # the recipe's refit network and loss reach the spec
         assert rec["spec"]["conv"] == [16, 16] and rec["spec"]["weight_power"] == 1.0
-    assert meta["lgs_wfs.domain"] == margtrain.domain(refdata.MARGINAL_SPEC)
+    assert meta["lgs_wfs.domain"] == margtrain.domain(refdata.MARGINAL_SPEC, detectors=dets)
     text = (tmp_path / "README.md").read_text()
     assert f"`{name}`" in text and text == card.render(tmp_path)
     sensor = Sensor(detector="polar", photons=1000.0)

@@ -94,18 +94,20 @@ def test_reference_model_contract_and_check_error(name):
 
 @pytest.mark.parametrize("name", MARGINAL_MODELS)
 def test_marginal_model_contract_and_check_error(name):
-    """ann_marg, ann_hyper, ann_conv: column sums and reference inputs (16 each), one
-    output, polar, the marginal domain, and the recorded check error
-    reproduced on the same fresh spots."""
+    """ann_marg, ann_hyper, ann_conv: bins along e and reference inputs (16 each), one
+    output, the marginal domain of the detectors trained on (ann_conv: both), and the
+    recorded check error reproduced on the same fresh spots."""
     from lgs_wfs_ros.learning import margtrain
     path = MODELS / f"{name}.onnx"
     meta = export.read_metadata(path)
-    assert meta["lgs_wfs.input"] == "marginals" and meta["lgs_wfs.detector"] == "polar"
-    assert meta["lgs_wfs.domain"] == margtrain.domain()
+    dets = tuple(meta["lgs_wfs.training"]["recipe"]["detectors"])
+    assert meta["lgs_wfs.input"] == "marginals"
+    assert meta["lgs_wfs.detector"] == ("polar" if set(dets) == {"polar"} else "any")
+    assert meta["lgs_wfs.domain"] == margtrain.domain(detectors=dets)
     ins = {i.name: i.shape for i in export.session(path).get_inputs()}
     assert ins == {"marginals": ["batch", 16], "reference": ["batch", 16]}
     check = meta["lgs_wfs.training"]["check"]
-    got = margtrain.check_error(path, check["n"], check["seed"])
+    got = margtrain.check_error(path, check["n"], check["seed"], dets)
     assert got == pytest.approx(check["mean_err_px"], rel=1e-4)
 
 

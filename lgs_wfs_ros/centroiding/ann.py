@@ -19,16 +19,17 @@ is accepted too):
 ``lgs_wfs.conditioning_input``  name of that second input (default "e")
 ``lgs_wfs.conditioning_frame``  "detector" (default: e in detector axes) | "pixel" (e in the
                                 block's pixel axes: (1, 0) on a polar detector)
-``lgs_wfs.input``           "pixels" (default) | "marginals": a polar-detector model that
-                            reads each subaperture's column sums ``(batch, p)`` (raw counts,
-                            a function of block x: along e), its reference input the same
-                            sums of the reference (unit sum), its output ``(batch, 1)`` the
-                            shift along e; block y (across e: the core alone) is the
-                            pupil-calibrated CoG of the row sums (``learning/margtrain.py``).
-                            On a cartesian detector (outside such a model's training domain:
-                            run with ``out_of_domain = warn``) it reads the light in 1 px
-                            bins along e with each pixel split by its overlap
-                            (:mod:`.bins_along_e`), and across e the pupil-calibrated CoG
+``lgs_wfs.input``           "pixels" (default) | "marginals": a model that reads each
+                            subaperture's light in 1 px bins along e ``(batch, p)``: on a
+                            polar detector its column sums (raw counts, a function of block
+                            x), on a cartesian one each pixel split by its overlap
+                            (:mod:`.bins_along_e`); its reference input the same bins of the
+                            reference (unit sum), its output ``(batch, 1)`` the shift along
+                            e; across e (the core alone) the pupil-calibrated CoG
+                            (``learning/margtrain.py``, ``hypertrain.py``). Its
+                            ``lgs_wfs.detector`` is "polar" or "any"; its domain lists the
+                            detectors it was trained on (a polar-only one refuses a cartesian
+                            sensor unless ``out_of_domain = warn``)
 ``lgs_wfs.hyper``           bool (default false): a marginals model whose reference sets
                             per-subaperture filters (``learning/hypertrain.py``): the graph's
                             tensors ``lgs_wfs.hyper_outputs`` (default ``["filters", "fbias"]``)
@@ -183,10 +184,10 @@ def read_metadata(meta_map: dict) -> dict:
         raise ValueError(f"ann: bad metadata lgs_wfs.pixels/output_scale: {exc}") from exc
     if not np.isfinite(md["output_scale"]):
         raise ValueError("ann: metadata lgs_wfs.output_scale must be finite")
-    if md["input"] == "marginals" and (md["detector"] != "polar"
+    if md["input"] == "marginals" and (md["detector"] not in ("polar", "any")
                                        or md["conditioning"] != "reference"):
-        raise ValueError("ann: a marginals model must declare lgs_wfs.detector polar and "
-                         "lgs_wfs.conditioning reference")
+        raise ValueError("ann: a marginals model must declare lgs_wfs.detector polar (or any) "
+                         "and lgs_wfs.conditioning reference")
     if not isinstance(md["hyper"], bool):
         raise ValueError(f"ann: metadata lgs_wfs.hyper must be true or false, got {md['hyper']!r}")
     if md["hyper"] and (md["conditioning"] != "reference" or md["input_norm"] != "none"):

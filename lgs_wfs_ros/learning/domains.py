@@ -39,8 +39,9 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     ``training`` metadata, when given, supplies the sensor)."""
     if rec.conditioning == "reference":          # ann_ref: its sampled ranges, not a sensor's
         return reference_domain(rec)
-    if rec.conditioning == "marginals":          # ann_marg: the same ranges, polar only
-        return marginal_domain()
+    if rec.conditioning == "marginals":          # ann_marg, ann_conv: the same ranges, their detectors
+        trained = ((training or {}).get("recipe") or {}).get("detectors") or rec.detectors
+        return marginal_domain(detectors=trained)
     sensor = _sensor(rec, training)
     lay = geometry.layout(sensor)
     r = np.asarray(lay.r_m, dtype=float)
@@ -68,9 +69,12 @@ def reference_domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.Pri
                          "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}
 
 
-def marginal_domain(prior: refdata.PriorSpec = refdata.MARGINAL_SPEC) -> dict:
-    """The domain of the marginal network (``ann_marg``): its spots' ranges, polar only."""
-    return {**reference_domain(None, prior), "detector": ["polar"], "input": "marginals+reference"}
+def marginal_domain(prior: refdata.PriorSpec = refdata.MARGINAL_SPEC, detectors=("polar",)) -> dict:
+    """The domain of a network on the light in bins along e (``ann_marg``, ``ann_conv``): its
+    spots' ranges and the detectors it was trained on (on a cartesian one the bins split each
+    pixel by its overlap, :mod:`..centroiding.bins_along_e`)."""
+    return {**reference_domain(None, prior), "detector": sorted(set(detectors)),
+            "input": "marginals+reference"}
 
 
 def stamp(path) -> dict:

@@ -360,13 +360,14 @@ class Graph:
 
 
 def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
-                contraction: str = "einsum"):
+                contraction: str = "einsum", detector: str = "polar"):
     """One ONNX graph: reference -> (filters, fbias) [refit part]; marginals, filters, fbias ->
     shift [frame part]. ``filters (batch, K', p)`` act on the raw-sum-normalised column sums
     ``u``; ``fbias (batch, K')`` holds every per-subaperture constant; the frame part then adds
     ``wN ln(N)``, multiplies the template rows by ``N^a`` and runs the tanh trunk.
     ``contraction``: the per-block product ``filters u`` as one ``Einsum`` (faster in
-    onnxruntime 1.31) or a batched ``MatMul``."""
+    onnxruntime 1.31) or a batched ``MatMul``. ``detector``: ``lgs_wfs.detector``, "polar"
+    or, for a network trained on bins along e of both detectors, "any"."""
     p, k, j = spec.pixels, spec.k, len(spec.templates)
     kk = k + j
     st = {n_: v.detach().cpu().numpy().astype(np.float64) for n_, v in net.state_dict().items()}
@@ -428,7 +429,7 @@ def build_model(net, spec: HyperSpec, metadata: dict, name: str = "ann_hyper",
                   ["shift" if last else f"tz{n_}"])
         if not last:
             h = node("Tanh", [zz], [f"th{n_}"])
-    return package(nodes, inits, name, "marginals", p, 1, "polar", metadata)
+    return package(nodes, inits, name, "marginals", p, 1, detector, metadata)
 
 
 def package(nodes, inits, name: str, frame_input: str, pixels: int, outputs: int,
@@ -482,18 +483,20 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     from . import export
     t0 = time.perf_counter()
     spec = spec_of(rec, epochs, seed)
-    data = margtrain.generate(samples, seed, progress=progress)
+    dets = rec.detectors
+    data = margtrain.generate(samples, seed, progress=progress, detectors=dets)
     mon = margtrain.generate(min(20_000, max(2000, samples // 10)), margtrain.MONITOR_SEED + seed,
-                             progress=False)
+                             progress=False, detectors=dets)
     gen_s = time.perf_counter() - t0
     log = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
     net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
     del data
-    check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False)
+    check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False, detectors=dets)
     training = record(rec, spec, samples, gen_s, net, hist, _mae(net, _tensors(check)),
                       "fresh spots of the training prior (margtrain's check set)")
     model = build_model(net, spec, {"lgs_wfs.training": training,
-                                    "lgs_wfs.domain": margtrain.domain()}, rec.name)
+                                    "lgs_wfs.domain": margtrain.domain(detectors=dets)}, rec.name,
+                        detector="polar" if set(dets) == {"polar"} else "any")
     path = export.save(model, Path(target))
     return {"path": str(path), "training": training, "history": hist}
 

@@ -49,16 +49,23 @@ def features(marg: np.ndarray, refs: np.ndarray) -> np.ndarray:
                            np.log10(tot) / 3.0 - LOG_OFFSET], axis=1).astype(np.float32)
 
 
-def generate(n: int, seed: int, batch: int = 4096, progress: bool = True) -> refdata.MarginalPairs:
-    """``n`` spots, batch ``k`` from ``default_rng([seed, k])`` (:data:`.refdata.MARGINAL_SPEC`)."""
+def generate(n: int, seed: int, batch: int = 4096, progress: bool = True,
+             detectors=("polar",)) -> refdata.MarginalPairs:
+    """``n`` spots of :data:`.refdata.MARGINAL_SPEC` shared among ``detectors``
+    (:func:`.refdata.split`); a detector's batch ``k`` comes from
+    ``default_rng([seed, k, *refdata.STREAMS[d]])``,
+    polar spots first."""
     from tqdm.auto import tqdm
-    parts, done = [], 0
+    parts = []
     with tqdm(total=n, desc="spots", unit="spot", disable=not progress, mininterval=5.0) as bar:
-        while done < n:
-            m = min(batch, n - done)
-            parts.append(refdata.marginal_pairs(np.random.default_rng([seed, len(parts)]), m))
-            done += m
-            bar.update(m)
+        for det, count in refdata.split(n, detectors).items():
+            done, k = 0, 0
+            while done < count:
+                m = min(batch, count - done)
+                rng = np.random.default_rng([seed, k, *refdata.STREAMS[det]])
+                parts.append(refdata.marginal_pairs(rng, m, detector=det))
+                done, k = done + m, k + 1
+                bar.update(m)
     return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts])
                                    for f in ("marg", "refs", "y", "r_m", "photons")])
 
@@ -116,13 +123,15 @@ def predict(path_or_model, pairs: refdata.MarginalPairs) -> np.ndarray:
                       dtype=np.float64)
 
 
-def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED) -> float:
-    """Mean absolute error along e (px) on the fixed check spots (fresh draws of the prior)."""
-    pairs = generate(n, seed, progress=False)
+def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED,
+                detectors=("polar",)) -> float:
+    """Mean absolute error along e (px) on the fixed check spots (fresh draws of the prior,
+    shared among ``detectors`` as the model's training shared them)."""
+    pairs = generate(n, seed, progress=False, detectors=detectors)
     return float(np.abs(predict(path_or_model, pairs) - pairs.y).mean())
 
 
-domain = domains.marginal_domain      # the training domain: the spots' ranges, polar only
+domain = domains.marginal_domain      # the training domain: the spots' ranges and detectors
 
 
 def record(rec: recipes.Recipe, samples: int, seed: int, generate_s: float, history: list,

@@ -98,14 +98,21 @@ class Recipe:
         """The one-line recipe printed by ``lgs-wfs train``."""
         if self.conditioning == "marginals":
             from .refdata import MARGINAL_SPEC as pr
+            polar = set(self.detectors) == {"polar"}
+            bins = ("column sums" if polar else
+                    "light in 1 px bins along e (column sums on polar pixels, each pixel split "
+                    "by its overlap on cartesian ones)")
             form = (f"MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's column sums "
                     f"(along e): (sums / total - reference's, reference's, log10 total)"
                     ) if not self.filters else (
-                    f"{self.filters} filters per subaperture set by its reference's column sums "
+                    f"{self.filters} filters per subaperture set by its reference's {bins} "
                     f"({self._hyper_form()}; run at each calibration refit), applied to the "
-                    f"spot's column sums / total, then tanh {'-'.join(map(str, self.sizes))} with "
+                    f"spot's {'column sums' if polar else 'bins'} / total, then tanh {'-'.join(map(str, self.sizes))} with "
                     f"log10 total")
-            return (f"{self.name}: {form}; {samples or self.samples} spots of the "
+            n = samples or self.samples
+            share = "" if polar else " (" + ", ".join(
+                f"{k} {d}" for d, k in self._split(n).items()) + ", e at any angle on cartesian)"
+            return (f"{self.name}: {form}; {n} spots{share} of the "
                     f"{pr.describe()}; references stale (layers moved {pr.stale_shift_m:g} m rms, "
                     f"stretched {pr.stale_stretch:.0%}) and seen through the pupil "
                     f"calibration's node basis ({pr.node_noise:.0%} node noise); "
@@ -142,6 +149,10 @@ class Recipe:
                 f"profiles ({self.profile_model}"
                 f"{f' {self.mix_fraction:g}' if self.profile_model == 'mix' else ''}), {where}, {ph}, positions N(0, {self.sigma_px:g} px), {opt}, "
                 f"seed {self.seed}")
+
+    def _split(self, n: int) -> dict:
+        from .refdata import split
+        return split(n, self.detectors)
 
     def _hyper_form(self) -> str:
         if not self.hyper_conv:
@@ -214,12 +225,13 @@ RECIPES["ann_hyper"] = Recipe(
 # above the prior's altitudes) is read as one at the centre; the loss weights each spot by
 # its Fisher information, so bright sharp spots count as much as the rest.
 RECIPES["ann_conv"] = Recipe(
-    "ann_conv", "polar", pupil=True, sizes=(16, 32, 1), conditioning="marginals", filters=16,
-    hyper_conv=(16, 16), samples=800_000, quick_samples=20_000, epochs=100, batch=512, lr=2e-3,
-    loss="fisher", seed=16, detectors=("polar",),
-    note="polar: 16 filters per subaperture set by convolutions over its reference from the "
-         "pupil calibration, applied to the column sums (along e); every radius to 35 m, "
-         "100-3000 photons")
+    "ann_conv", "any", pupil=True, sizes=(16, 32, 1), conditioning="marginals", filters=16,
+    hyper_conv=(16, 16), samples=1_400_000, quick_samples=20_000, epochs=100, batch=512, lr=2e-3,
+    loss="fisher", seed=16, detectors=("polar",) * 4 + ("cartesian",) * 3,
+    note="both detectors: 16 filters per subaperture set by convolutions over its reference from "
+         "the pupil calibration, applied to the light in 1 px bins along e (polar: the column "
+         "sums; cartesian, e at any angle: each pixel split by its overlap); every radius to "
+         "35 m, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they

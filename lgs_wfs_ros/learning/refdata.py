@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..centroiding import bins_along_e
 from ..optics import sodium
 from ..optics.detector import expose
 from ..optics.gaussian_spot import FWHM_PER_SIGMA
@@ -171,9 +172,10 @@ def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray) -
 
 @dataclass
 class MarginalPairs:
-    """``n`` polar spots seen along e (block x): ``marg (n, p)`` float32 the column sums of
-    a noisy image (Poisson counts), ``refs (n, p)`` float32 the same sums of its reference,
-    unit sum, ``y (n, 1)`` float32 the shift along e (px), ``r_m (n,)``, ``photons (n,)``."""
+    """``n`` spots seen along e: ``marg (n, p)`` float32 the light of a noisy image in 1 px
+    bins along e (on a polar detector its column sums: Poisson counts), ``refs (n, p)``
+    float32 the same bins of its reference, unit sum, ``y (n, 1)`` float32 the shift along e
+    (px), ``r_m (n,)``, ``photons (n,)``."""
 
     marg: np.ndarray
     refs: np.ndarray
@@ -190,19 +192,51 @@ class MarginalPairs:
 MARGINAL_SPEC = PriorSpec(stale_shift_m=50.0, stale_stretch=0.02, node_noise=0.02)
 
 
+#: each detector's random stream: its batch ``k`` is drawn from ``default_rng([seed, k, *stream])``
+#: (polar spots are those drawn before cartesian ones were added)
+STREAMS = {"polar": (), "cartesian": (1,)}
+
+
+def split(n: int, detectors=("polar",)) -> dict:
+    """``{detector: spots}``: ``n`` shared among ``detectors`` as often as each is listed
+    (``("polar",) * 4 + ("cartesian",) * 3``: 4 / 7 polar), in :data:`STREAMS` order."""
+    dets = [d for d in STREAMS if d in detectors]
+    unknown = set(detectors) - set(STREAMS)
+    if unknown or not dets:
+        raise ValueError(f"detectors must name {' or '.join(STREAMS)}, got {tuple(detectors)!r}")
+    out = {d: int(n * list(detectors).count(d) // len(detectors)) for d in dets}
+    out[dets[0]] += n - sum(out.values())
+    return out
+
+
 def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_SPEC,
-                   sensor: Sensor = Sensor()) -> MarginalPairs:
-    """Draw ``n`` polar spots (elongation along block x) as :class:`MarginalPairs`: the
-    prior, geometry and noise of :func:`pairs` (with ``spec``), each image and reference
-    reduced to its column sums (a polar spot is the outer product of its marginals)."""
+                   sensor: Sensor = Sensor(), detector: str = "polar") -> MarginalPairs:
+    """Draw ``n`` spots as :class:`MarginalPairs`: the prior, geometry and noise of
+    :func:`pairs` (with ``spec``), each image and reference reduced to its light in 1 px
+    bins along e. ``detector`` "polar": e along block x, the bins are the column sums (a
+    polar spot is the outer product of its marginals); "cartesian": e at any angle, each
+    pixel split over the bins by the overlap of its footprint
+    (:func:`..centroiding.bins_along_e.overlap_weights`, what the centroider reads there)."""
     r = rng.uniform(*spec.radius_m, size=n)
-    t, ref, ph, counts = _spots(rng, spec, sensor, r, np.tile([1.0, 0.0], (n, 1)))
-    refm = ref.sum(axis=1)
+    if detector == "polar":
+        e = np.tile([1.0, 0.0], (n, 1))
+    elif detector == "cartesian":
+        ang = rng.uniform(0.0, 2 * math.pi, size=n)
+        e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    else:
+        raise ValueError(f"marginal_pairs: detector must be polar or cartesian, not {detector!r}")
+    t, ref, ph, counts = _spots(rng, spec, sensor, r, e)
+    if detector == "polar":
+        marg, refm = counts.sum(axis=1), ref.sum(axis=1)
+    else:
+        weights = bins_along_e.overlap_weights(e, sensor.pixels)
+        marg = bins_along_e.project(counts.reshape(n, -1), *weights)
+        refm = bins_along_e.project(ref.reshape(n, -1), *weights)
     tot = refm.sum(axis=1, keepdims=True)
-    return MarginalPairs(counts.sum(axis=1).astype(np.float32),
+    return MarginalPairs(np.asarray(marg, dtype=np.float32),
                          (refm / np.where(tot > 0, tot, np.inf)).astype(np.float32),
-                         t[:, :1].astype(np.float32), r, ph)
+                         (t * e).sum(axis=1, keepdims=True).astype(np.float32), r, ph)
 
 
 __all__ = ["PriorSpec", "broad_profiles", "calibrated", "pairs", "Pairs", "marginal_pairs",
-           "MarginalPairs", "MARGINAL_SPEC", "GRID"]
+           "MarginalPairs", "MARGINAL_SPEC", "GRID", "STREAMS", "split"]
