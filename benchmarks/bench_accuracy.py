@@ -73,19 +73,18 @@ ESTIMATORS = {
     "ann_pupil": ("ann", {"model": "ann_pupil", "out_of_domain": "warn"}),   # side launch: r beyond its training radii
     "ann_marg": ("ann", {"model": "ann_marg"}),   # polar only (refused on cartesian)
     "ann_hyper": ("ann", {"model": "ann_hyper"}), # polar only; the default polar ann until 2026-11-26
-    "ann_conv": ("ann", {"model": "ann_conv"}),   # polar only; the default polar ann
-    # ann_conv on a cartesian detector too: there it reads bins along e, pixels split by
-    # overlap (centroiding/bins_along_e.py), outside its polar training domain (warn)
-    "ann_conv_bins": ("ann", {"model": "ann_conv", "out_of_domain": "warn"}),
+    # the default ann on both detectors since 2026-11-27 (trained on both; on cartesian
+    # pixels it reads bins along e, each pixel split by its overlap: centroiding/bins_along_e.py)
+    "ann_conv": ("ann", {"model": "ann_conv"}),
     # with the altitude tracker (off by default: it takes the atmosphere's focus too)
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),
 }
 QUICK_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "corr", "ann_pupil", "ann_marg",
-                    "ann_hyper", "ann_conv", "ann_conv_bins", "ml_alt", "cmf_alt")
+                    "ann_hyper", "ann_conv", "ml_alt", "cmf_alt")
 #: the estimators issue 14's and 15's "done when" name, for --long
 LONG_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", "ann_marg", "ann_hyper", "ann_conv",
-                   "ann_conv_bins", "ml_alt", "cmf_alt")
+                   "ml_alt", "cmf_alt")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
 

@@ -128,8 +128,10 @@ def run(quick: bool = False) -> list[dict]:
         ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
         ("corr (default: pupil reference, gauss 3x3 peak; per-frame part)", "corr",
          {"pupil_period": 1000000}, "< 1 ms", reps),
-        ("ann ann_conv on bins along e (cartesian detector, out_of_domain warn; per-frame part)",
-         "ann", {"model": "ann_conv", "out_of_domain": "warn", "pupil_period": 1000000}, "< 1 ms", reps),
+        ("ann (default: ann_conv on bins along e, cartesian detector; per-frame part)",
+         "ann", {"pupil_period": 1000000}, "< 1 ms", reps),
+        ("ann ann_ref (the cartesian default until 2026-11-27; per-frame part)",
+         "ann", {"model": "ann_ref", "pupil_period": 1000000}, "", reps),
     ]
     for label, name, opts, target, r in cases:
         c = make_centroider(name, sensor, **opts)
