@@ -73,24 +73,14 @@ def draw_phased(rng: np.random.Generator, n: int) -> dict:
     """``cartesian_filters.draw`` with each reference rendered at the spot's shift across e as
     the calibrated CoG reads it (``cartesian_filters.rephase``), not at zero."""
     from cartesian_filters import rephase
-    from lgs_wfs_ros.optics.detector import expose
-    from lgs_wfs_ros.optics.spots import SpotModel
     from lgs_wfs_ros.sensor import Sensor
     spec, sensor = refdata.MARGINAL_SPEC, Sensor()
     render = sensor.replace(detector="cartesian")
     r = rng.uniform(*spec.radius_m, size=n)
     ang = rng.uniform(0.0, 2 * math.pi, size=n)
     e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
-    rho = refdata.broad_profiles(rng, n, spec)
-    img, _ = SpotModel(render, r, e, refdata.GRID, rho, max_shift_px=2.4).images(t)
-    ref_rho = refdata.calibrated(rng, rho, spec, sensor)
-    ref0, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
-    ref0 = np.clip(ref0, 0.0, None)
+    t, ref0, ph, counts, ref_rho = refdata._spots(rng, spec, sensor, r, e, profiles=True)
     ref0 = ref0 / np.maximum(ref0.sum(axis=(1, 2), keepdims=True), 1e-12)
-    ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
-    counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
-                    True, "float32")
     refs = rephase(render, r, e, ref_rho, ref0, counts)
     return {"counts": counts.astype(np.float32), "refs": refs.astype(np.float32),
             "y": t.astype(np.float32), "r_m": r, "e": e, "photons": ph}

@@ -274,6 +274,23 @@ def build_onnx(net, domain: dict, training: dict | None = None):
 
 
 # -- validation ------------------------------------------------------------------------------
+def spot_fisher(model, t: np.ndarray, photons: float) -> tuple:
+    """``(img, tot, mu, fisher)`` of ``model``'s spots at shifts ``t (n, 2)`` px: the images,
+    their light in the field, the expected counts at ``photons`` in the field and the
+    ``(n, 2, 2)`` Fisher matrix of a shift (central differences of renders, 0.02 px; the flux
+    held fixed, a small under-estimate of the bound)."""
+    img, _ = model.images(t)
+    tot = img.sum(axis=(1, 2))
+    h = 0.02
+    grads = [(model.images(t + h * d)[0] - model.images(t - h * d)[0]) / (2 * h)
+             for d in (np.array([1.0, 0.0]), np.array([0.0, 1.0]))]
+    mu = photons * img / tot[:, None, None]
+    gr = [photons * g_ / tot[:, None, None] for g_ in grads]
+    w = 1.0 / np.maximum(mu, 1e-9)
+    fi = np.array([[(gr[a] * gr[b] * w).sum(axis=(1, 2)) for b in range(2)] for a in range(2)])
+    return img, tot, mu, np.moveaxis(fi, 2, 0)
+
+
 def validation_spots(rng: np.random.Generator, n: int, family: str, photons: float,
                      sensor: Sensor = Sensor(), phased: bool = False,
                      exact: bool = False) -> tuple[dict, np.ndarray]:
@@ -291,16 +308,7 @@ def validation_spots(rng: np.random.Generator, n: int, family: str, photons: flo
     t = np.clip(rng.normal(0.0, SHIFT_RMS_PX, size=(n, 2)), -2.3, 2.3)
     rho = family_profiles(rng, family, n)
     model = SpotModel(render, r, e, refdata.GRID, rho, max_shift_px=2.4)
-    img, _ = model.images(t)
-    tot = img.sum(axis=(1, 2))
-    h = 0.02
-    grads = [(model.images(t + h * d)[0] - model.images(t - h * d)[0]) / (2 * h)
-             for d in (np.array([1.0, 0.0]), np.array([0.0, 1.0]))]
-    mu = photons * img / tot[:, None, None]
-    gr = [photons * g_ / tot[:, None, None] for g_ in grads]       # flux fixed (a small under-estimate of the bound)
-    w = 1.0 / np.maximum(mu, 1e-9)
-    fi = np.array([[(gr[a] * gr[b] * w).sum(axis=(1, 2)) for b in range(2)] for a in range(2)])
-    fi = np.moveaxis(fi, 2, 0)
+    img, tot, mu, fi = spot_fisher(model, t, photons)
     crb = np.trace(np.linalg.inv(fi), axis1=1, axis2=2)
     ref_rho = rho if exact else refdata.calibrated(rng, rho, refdata.MARGINAL_SPEC, sensor)
     ref, _ = SpotModel(render, r, e, refdata.GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))

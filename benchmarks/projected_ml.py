@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cartesian_columns import project  # noqa: E402
-from cartesian_filters import cog  # noqa: E402
+from cartesian_filters import cog, spot_fisher  # noqa: E402
 from marginal_validation import PUPIL_RADIUS_M, SHIFT_RMS_PX, family_profiles  # noqa: E402
 from lgs_wfs_ros.learning import refdata  # noqa: E402
 from lgs_wfs_ros.optics.spots import SpotModel  # noqa: E402
@@ -53,14 +53,7 @@ def spots(rng, family: str, photons: float, n: int):
     v = np.stack([-e[:, 1], e[:, 0]], axis=1)
     t = np.clip(rng.normal(0.0, SHIFT_RMS_PX, size=(n, 2)), -2.3, 2.3)
     model = SpotModel(sensor, r, e, refdata.GRID, family_profiles(rng, family, n), max_shift_px=3.5)
-    img = model.images(t)[0]
-    mu = photons * img / img.sum(axis=(1, 2))[:, None, None]
-    h = 0.02
-    gr = [photons * (model.images(t + h * d)[0] - model.images(t - h * d)[0]) / (2 * h)
-          / img.sum(axis=(1, 2))[:, None, None] for d in (np.array([1.0, 0.0]), np.array([0.0, 1.0]))]
-    w = 1.0 / np.maximum(mu, 1e-9)
-    fi = np.moveaxis(np.array([[(gr[a] * gr[b] * w).sum(axis=(1, 2)) for b in range(2)]
-                               for a in range(2)]), 2, 0)
+    _, _, mu, fi = spot_fisher(model, t, photons)
     crb_e = np.einsum("ni,nij,nj->n", e, np.linalg.inv(fi), e)
     return model, rng.poisson(mu).astype(np.float32), e, v, t, crb_e
 

@@ -153,10 +153,12 @@ def pairs(rng: np.random.Generator, n: int, spec: PriorSpec = PriorSpec(),
     return Pairs(_unit(counts), _unit(ref), t.astype(np.float32), r, e, ph)
 
 
-def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray) -> tuple:
+def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray,
+           profiles: bool = False) -> tuple:
     """The draws after the geometry (``r (n,)`` m, ``e (n, 2)`` pixel axes): ``(t (n, 2)``
     shifts px, ``ref (n, p, p)`` the stale references at zero shift, ``ph (n,)`` photons,
-    ``counts (n, p, p)`` the noisy images``)``, rendered as cartesian spots along ``e``."""
+    ``counts (n, p, p)`` the noisy images``)``, rendered as cartesian spots along ``e``;
+    with ``profiles`` a fifth item, the references' densities ``(n, K)`` on :data:`GRID`."""
     n = r.size
     render = sensor.replace(detector="cartesian")
     t = np.clip(rng.normal(0.0, spec.sigma_px, size=(n, 2)), -2.4, 2.4)
@@ -167,7 +169,8 @@ def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray) -
     ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
     counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
                     True, "float32")
-    return t, np.clip(ref, 0.0, None), ph, counts
+    out = (t, np.clip(ref, 0.0, None), ph, counts)
+    return (*out, ref_rho) if profiles else out
 
 
 @dataclass
