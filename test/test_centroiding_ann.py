@@ -160,16 +160,18 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # the default models (ann_conv polar, ann_ref cartesian) ship with the package, so
-    # they resolve by name ...
+    # the default model (ann_conv on both detectors) ships with the package, so it
+    # resolves by name and runs inside its domain on either detector ...
     from lgs_wfs_ros.centroiding import ann
-    assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_ref"}
+    assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_conv"}
     for name in ann.DEFAULT_MODELS.values():
         assert resolve_model(name) == ann.model_dirs()[0] / f"{name}.onnx"
-    assert make_centroider("ann", Sensor(detector="polar")).model_name == "ann_conv"
+    for det in ("polar", "cartesian"):
+        c = make_centroider("ann", Sensor(detector=det))
+        assert c.model_name == "ann_conv" and c.describe()["domain"]["out_of_domain_subapertures"] == 0
     # ... and where no directory holds it, the error says so (both paths always run)
     monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
-    with pytest.raises(ValueError, match="'ann_ref' not found"):
+    with pytest.raises(ValueError, match="'ann_conv' not found"):
         make_centroider("ann", SENSOR)
     with pytest.raises(ValueError, match="'tiny_cog' not found"):
         resolve_model("tiny_cog")
@@ -265,7 +267,8 @@ def test_bias_option_needs_a_reference_reading_model():
     others) and is refused, with the reason, where the model reads no reference."""
     polar = Sensor(detector="polar")
     assert table.build("ann", polar, {}).describe()["options"]["bias"] == "pupil"    # ann_conv
-    assert table.build("ann", Sensor(detector="cartesian"), {}).describe()["options"]["bias"] == "none"
+    assert table.build("ann", Sensor(detector="cartesian"), {}).describe()["options"]["bias"] == "pupil"
+    assert table.build("ann", Sensor(detector="cartesian"), {"model": "ann_ref"}).describe()["options"]["bias"] == "none"
     one = Sensor.paper_single("polar")
     assert table.build("ann", one, {"model": "ann_1k"}).describe()["options"]["bias"] == "none"
     with pytest.raises(ValueError, match="reads none"):

@@ -78,10 +78,12 @@ from . import kernels
 from . import pupil as pupil_cal
 from .base import Centroider, check_options, choice
 
-#: the default model per detector (docs/ann_ref.md): both read the pupil-calibrated
-#: reference; on a polar detector ann_conv (filters its reference sets through convolutions,
-#: on the column sums along e) is the more accurate
-DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_ref"}
+#: the default model per detector (docs/ann_ref.md): ann_conv on both since 2026-11-27
+#: (filters its pupil-calibrated reference sets through convolutions, applied to the light in
+#: 1 px bins along e: the column sums on polar pixels, each pixel split by its overlap on
+#: cartesian ones; trained on both); ann_ref (the whole image beside its reference) was the
+#: cartesian default before
+DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_conv"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
@@ -412,7 +414,7 @@ class ANN(Centroider):
 
     Options:
         model: path or name (default: :data:`DEFAULT_MODELS` of the sensor's detector,
-            ``ann_conv`` polar, ``ann_ref`` cartesian), see :func:`resolve_model`.
+            ``ann_conv`` on both), see :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.
