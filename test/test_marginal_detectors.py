@@ -10,9 +10,10 @@ from lgs_wfs_ros.sensor import Sensor
 
 
 def bins_cog(a):
-    """Each row's centre of light along its bins, px."""
+    """Each row's centre of light along its bins, px (NaN for a row without light)."""
     k = np.arange(a.shape[1])
-    return (a * k).sum(axis=1) / a.sum(axis=1)
+    tot = a.sum(axis=1)
+    return (a * k).sum(axis=1) / np.where(tot > 0, tot, np.nan)
 
 
 def test_cartesian_spots_are_read_along_their_e():
