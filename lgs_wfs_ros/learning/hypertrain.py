@@ -1,4 +1,9 @@
-"""Reference-conditioned filters for the marginal network (``ann_hyper``, ``ann_conv``; polar).
+"""Reference-conditioned filters for the marginal network (``ann_hyper`` polar; ``ann_conv``
+both detectors).
+
+"Column sums" below are a block's light in 1 px bins along e: on a polar detector its pixel
+columns, on a cartesian one each pixel split by its overlap (:mod:`..centroiding.bins_along_e`,
+:func:`.refdata.marginal_pairs`); a recipe's ``detectors`` say which it trains on.
 
 ``ann_marg``'s first layer is linear in (column sums, reference): it cannot build a matched
 filter from the reference. Here the reference sets the first layer's weights. At each
