@@ -58,8 +58,7 @@ def draw(rng: np.random.Generator, n: int, spec=refdata.MARGINAL_SPEC, sensor: S
     """``n`` cartesian spots of ``ann_conv``'s prior at any angle: ``counts (n, p, p)``,
     ``refs (n, p, p)`` unit sum, ``y (n, 2)`` px, ``r_m``, ``e (n, 2)``, ``photons``."""
     r = rng.uniform(*spec.radius_m, size=n)
-    ang = rng.uniform(0.0, 2 * math.pi, size=n)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    e = refdata.any_angle(rng, n)
     t, ref, ph, counts = refdata._spots(rng, spec, sensor, r, e)
     ref = ref / np.maximum(ref.sum(axis=(1, 2), keepdims=True), 1e-12)
     return {"counts": counts.astype(np.float32), "refs": ref.astype(np.float32),
@@ -303,8 +302,7 @@ def validation_spots(rng: np.random.Generator, n: int, family: str, photons: flo
     from marginal_validation import PUPIL_RADIUS_M, SHIFT_RMS_PX, family_profiles
     render = sensor.replace(detector="cartesian")
     r = PUPIL_RADIUS_M * np.sqrt(rng.uniform(0.02, 1.0, size=n))
-    ang = rng.uniform(0.0, 2 * math.pi, size=n)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    e = refdata.any_angle(rng, n)
     t = np.clip(rng.normal(0.0, SHIFT_RMS_PX, size=(n, 2)), -2.3, 2.3)
     rho = family_profiles(rng, family, n)
     model = SpotModel(render, r, e, refdata.GRID, rho, max_shift_px=2.4)

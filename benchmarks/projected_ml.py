@@ -48,8 +48,7 @@ def spots(rng, family: str, photons: float, n: int):
     vectors along / across e, true shifts (px) and each block's bound along e (px^2)."""
     sensor = Sensor().replace(detector="cartesian")
     r = PUPIL_RADIUS_M * np.sqrt(rng.uniform(0.02, 1.0, size=n))
-    ang = rng.uniform(0.0, 2 * math.pi, size=n)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    e = refdata.any_angle(rng, n)
     v = np.stack([-e[:, 1], e[:, 0]], axis=1)
     t = np.clip(rng.normal(0.0, SHIFT_RMS_PX, size=(n, 2)), -2.3, 2.3)
     model = SpotModel(sensor, r, e, refdata.GRID, family_profiles(rng, family, n), max_shift_px=3.5)

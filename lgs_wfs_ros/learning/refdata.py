@@ -142,12 +142,17 @@ def _unit(a: np.ndarray) -> np.ndarray:
     return (flat / np.where(tot > 0, tot, np.inf)).astype(np.float32)
 
 
+def any_angle(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``(n, 2)`` unit vectors at angles uniform in 0-360 deg (one draw of ``n`` numbers)."""
+    ang = rng.uniform(0.0, 2 * math.pi, size=n)
+    return np.stack([np.cos(ang), np.sin(ang)], axis=1)
+
+
 def pairs(rng: np.random.Generator, n: int, spec: PriorSpec = PriorSpec(),
           sensor: Sensor = Sensor()) -> Pairs:
     """Draw ``n`` training pairs (see the module doc)."""
     r = rng.uniform(*spec.radius_m, size=n)
-    ang = rng.uniform(0.0, 2 * math.pi, size=n)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    e = any_angle(rng, n)
     e[rng.random(n) < spec.polar_fraction] = (1.0, 0.0)
     t, ref, ph, counts = _spots(rng, spec, sensor, r, e)
     return Pairs(_unit(counts), _unit(ref), t.astype(np.float32), r, e, ph)
@@ -207,7 +212,7 @@ def split(n: int, detectors=("polar",)) -> dict:
     unknown = set(detectors) - set(STREAMS)
     if unknown or not dets:
         raise ValueError(f"detectors must name {' or '.join(STREAMS)}, got {tuple(detectors)!r}")
-    out = {d: int(n * list(detectors).count(d) // len(detectors)) for d in dets}
+    out = {d: n * list(detectors).count(d) // len(detectors) for d in dets}
     out[dets[0]] += n - sum(out.values())
     return out
 
@@ -224,8 +229,7 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     if detector == "polar":
         e = np.tile([1.0, 0.0], (n, 1))
     elif detector == "cartesian":
-        ang = rng.uniform(0.0, 2 * math.pi, size=n)
-        e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        e = any_angle(rng, n)
     else:
         raise ValueError(f"marginal_pairs: detector must be polar or cartesian, not {detector!r}")
     t, ref, ph, counts = _spots(rng, spec, sensor, r, e)
@@ -242,4 +246,4 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
 
 
 __all__ = ["PriorSpec", "broad_profiles", "calibrated", "pairs", "Pairs", "marginal_pairs",
-           "MarginalPairs", "MARGINAL_SPEC", "GRID", "STREAMS", "split"]
+           "MarginalPairs", "MARGINAL_SPEC", "GRID", "STREAMS", "split", "any_angle"]
