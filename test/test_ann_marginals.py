@@ -15,14 +15,14 @@ DOMAIN = {"radius_m": [0.0, 40.0], "detector": ["polar"], "photons": [100, 3000]
           "profile_prior": "test", "input": "marginals+reference"}
 
 
-def linear_marginal_model(path, log_weight=0.0):
+def linear_marginal_model(path, log_weight=0.0, metadata=None):
     """One layer: shift = CoG(column sums) - CoG(reference's) (+ log_weight times the log
-    feature): block x of cog with bias = pupil."""
+    feature): block x of cog with bias = pupil. ``metadata``: more ``lgs_wfs.*`` entries."""
     u = (np.arange(P) - (P - 1) / 2) / P
     w = np.zeros((2 * P + 1, 1))
     w[:P, 0] = u                                     # p (m / N - r) . u / p
     w[2 * P, 0] = log_weight
-    model = margtrain.build_model([(w, np.zeros(1))], P, {"lgs_wfs.domain": DOMAIN})
+    model = margtrain.build_model([(w, np.zeros(1))], P, {"lgs_wfs.domain": DOMAIN, **(metadata or {})})
     import onnx
     onnx.save(model, str(path))
     return path

@@ -52,6 +52,46 @@ def test_bins_split_each_pixel_by_its_overlap(deg):
         bins=P, range=(-P / 2, P / 2), weights=img.ravel())[0] - want).max()
 
 
+def test_a_moved_window_reads_the_same_light_a_whole_bin_further():
+    """Windows moved by o px along e (moved) read what the centred one reads, o bins on:
+    a wrong sign or a re-split pixel fails; light the centred window drops at a diagonal
+    block's far end comes back."""
+    rng = np.random.default_rng(2)
+    e = np.array([[np.cos(0.8), np.sin(0.8)], [np.cos(2.0), np.sin(2.0)]])
+    img = rng.random((2, P * P))
+    start, w = bins_along_e.overlap_weights(e, P)
+    centred = bins_along_e.project(img, start, w)
+    for o in (1, 3, -2):
+        off = np.array([o, -o])
+        got = bins_along_e.project(img, bins_along_e.moved(start, off), w)
+        for b in range(2):
+            k = np.arange(P)
+            inside = (k + off[b] >= 0) & (k + off[b] < P)
+            np.testing.assert_allclose(got[b, inside], centred[b, k[inside] + off[b]], rtol=1e-9)
+            assert got[b, ~inside].sum() > 0          # light beyond the centred window's end
+    far = np.zeros((1, P, P))
+    far[0, 13:, 13:] = 1.0                            # a diagonal block's far corner
+    diag = np.array([[np.sqrt(0.5), np.sqrt(0.5)]])
+    s0, w0 = bins_along_e.overlap_weights(diag, P)
+    kept0 = bins_along_e.project(far.reshape(1, -1), s0, w0).sum()
+    kept3 = bins_along_e.project(far.reshape(1, -1), bins_along_e.moved(s0, [3]), w0).sum()
+    assert kept0 < 0.2 * far.sum() and kept3 > 0.98 * far.sum()     # (the last corner: 11.3 px)
+
+
+@pytest.mark.parametrize("deg, centre, want", [(45.0, 5.0, 3), (45.0, -2.2, -2), (45.0, 0.4, 0),
+                                               (0.0, 5.0, 0), (90.0, -5.0, 0), (18.0, 5.0, 2),
+                                               (225.0, 5.0, 3)])
+def test_window_offsets_follow_the_references_light_within_the_blocks_reach(deg, centre, want):
+    """The window sits at the reference's light centre along e, rounded, held within the
+    block's reach along e (none along a pixel axis, +-3 px on a diagonal)."""
+    e = np.array([[np.cos(np.radians(deg)), np.sin(np.radians(deg))]])
+    y, x = np.indices((P, P)) - (P - 1) / 2
+    u = x * e[0, 0] + y * e[0, 1]
+    ref = np.exp(-0.5 * ((u - centre) / 1.5) ** 2 - 0.5 * ((-x * e[0, 1] + y * e[0, 0]) / 1.5) ** 2)
+    assert bins_along_e.window_offsets(ref.reshape(1, -1), e)[0] == want
+    assert bins_along_e.window_offsets(np.zeros((1, P * P)), e)[0] == 0
+
+
 def test_a_nan_pixel_makes_its_block_nan():
     start, w = bins_along_e.overlap_weights(np.array([[0.6, 0.8], [1.0, 0.0]]), P)
     flat = np.ones((2, P * P))
@@ -86,9 +126,10 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
     polar), and with out_of_domain = warn reads bins along e: the linear model (the CoG of
     its input less the reference's) gives along e the CoG of the spot's bins less that of
     the calibrated reference's bins, and across e the calibrated CoG, through refits and on
-    frames and stacks; all subapertures are counted outside the domain."""
+    frames and stacks, through windows moved to the references' light (the model declares
+    lgs_wfs.bins_window reference); all subapertures are counted outside the domain."""
     sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
-    path = linear_marginal_model(tmp_path / "marg.onnx")
+    path = linear_marginal_model(tmp_path / "marg.onnx", metadata={"lgs_wfs.bins_window": "reference"})
     with pytest.raises(ValueError, match="polar detector; the sensor is cartesian"):
         make_centroider("ann", sensor, model=str(path))
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
@@ -97,10 +138,11 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
     lay = geometry.layout(sensor)
     e = np.asarray(lay.e)
     v = np.stack([-e[:, 1], e[:, 0]], axis=1)
-    start, _, w = bins_along_e.quantised(*bins_along_e.overlap_weights(e, P))   # the centroider's split
+    centred = bins_along_e.overlap_weights(e, P)
     pos = np.arange(P) - (P - 1) / 2
 
-    def bins_cog(stack):
+    def bins_cog(stack):                              # through the centroider's windows
+        start, _, w = bins_along_e.quantised(bins_along_e.moved(centred[0], ann._window), centred[1])
         b = bins_along_e.project(stack.reshape(lay.n_valid, -1), start, w)
         return b @ pos / b.sum(axis=1)
 
@@ -116,6 +158,29 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
         np.testing.assert_allclose((a * v).sum(axis=1), (c * v).sum(axis=1), atol=2e-4)
         # not the column sums: along e the bins' CoG differs from the plain block CoG's
         assert np.abs((a - c) * e).sum(axis=1).mean() > 0.01
+    # the windows sit where the refitted references' light is (the layer at 92 km is
+    # above h_ref: off centre along e far from the 16 m side launch)
+    np.testing.assert_array_equal(ann._window, bins_along_e.window_offsets(
+        ann.pupil.reference_image().reshape(lay.n_valid, -1), e))
+    assert np.count_nonzero(ann._window) > 100
     d = ann.describe()
     assert d["domain"]["out_of_domain_subapertures"] == lay.n_valid
     assert "polar" in d["warning"]
+
+
+def test_a_model_trained_on_centred_windows_keeps_them(tmp_path):
+    """A model without lgs_wfs.bins_window (trained on windows centred on the blocks, as
+    every model before 2026-11-27) reads centred windows through refits, where a model
+    declaring reference windows moves them."""
+    sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    pup = {"pupil_period": 2, "pupil_time_constant_s": 0.0, "out_of_domain": "warn"}
+    old = options.build("ann", sensor, {"model": str(linear_marginal_model(tmp_path / "a.onnx")), **pup})
+    new = options.build("ann", sensor, {"model": str(linear_marginal_model(
+        tmp_path / "b.onnx", metadata={"lgs_wfs.bins_window": "reference"})), **pup})
+    for f in frames(sensor, 2):
+        old.centroid(f), new.centroid(f)
+    assert old.meta["bins_window"] == "centred" and not np.any(old._window)
+    assert np.count_nonzero(new._window) > 100
+    with pytest.raises(ValueError, match="bins_window"):
+        linear_marginal_model(tmp_path / "c.onnx", metadata={"lgs_wfs.bins_window": "left"})
+        options.build("ann", sensor, {"model": str(tmp_path / "c.onnx"), **pup})

@@ -10,6 +10,12 @@ from the block centre (``k = 0..p-1``) by the share of that footprint in each. L
 beyond +-p/2 px along ``e`` (a diagonal spot's far corners) is dropped, as a polar field
 drops it. On a polar block (``e = (1, 0)``) the bins are the column sums exactly.
 
+A cartesian block reaches ``p/2 (|e_x| + |e_y|)`` px along ``e`` (11.3 px for a diagonal
+one), further than ``p`` bins. The window of bins may then move along ``e`` by a whole
+number of pixels, ``o``, to where the light is (:func:`window_offsets`, from a reference
+image): bins ``[k - p/2 + o, k - p/2 + o + 1)``. Spots far off centre (a high layer: 3-5 px)
+keep their far end; a spot and its reference read through the same window stay comparable.
+
 Such bins keep the block's information along ``e`` (1.00-1.006x its Cramer-Rao bound on
 the unseen families, docs/ann_ref.md "What a projection keeps"); whole pixels moved to the
 bin of their centre lose 2-6 %. They share pixels, so they are correlated, not Poisson.
@@ -40,8 +46,46 @@ def _footprint_cdf(t: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(b > 1e-9, trap, box)
 
 
+def window_offsets(ref_flat: np.ndarray, e_pixel: np.ndarray) -> np.ndarray:
+    """``(n,)`` int32 px: where each block's window of bins along e should sit.
+
+    The light centre along ``e`` of the references ``ref_flat (n, p*p)`` (counts, any
+    scale), rounded to a whole pixel and held where the window stays inside the block's
+    reach along ``e``, ``p/2 (|e_x| + |e_y|)`` px, to within half a bin: 0 for a block whose
+    ``e`` is within 3.7 deg of a pixel axis, +-1 px to 12 deg, +-2 px to 23 deg, +-3 px
+    beyond. A block without light gets 0.
+    """
+    ref = np.nan_to_num(np.asarray(ref_flat, dtype=np.float64), nan=0.0)
+    e = np.asarray(e_pixel, dtype=np.float64)
+    n, pp = ref.shape
+    p = int(round(pp ** 0.5))
+    u = _along(e, p)                                                                 # (n, pp)
+    tot = ref.sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        centre = np.where(tot > 0, (ref * u).sum(axis=1) / np.where(tot > 0, tot, 1.0), 0.0)
+    reach = np.floor(0.5 * p * (np.abs(e[:, 0]) + np.abs(e[:, 1])) - 0.5 * p + 0.5)
+    return np.clip(np.rint(centre), -reach, reach).astype(np.int32)
+
+
+def _along(e: np.ndarray, p: int) -> np.ndarray:
+    """``(n, p*p)`` px: each pixel centre's position along ``e (n, 2)`` from the block
+    centre (row-major pixels)."""
+    c = (p - 1) / 2.0
+    y, x = np.indices((p, p), dtype=np.float64)
+    return (x.ravel() - c)[None, :] * e[:, :1] + (y.ravel() - c)[None, :] * e[:, 1:]
+
+
+def moved(start: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``start`` of :func:`overlap_weights` for windows moved by ``offset (n,)`` whole px
+    along e (:func:`window_offsets`). Moving the bin edges by whole pixels leaves every
+    pixel's split unchanged and only renumbers its bins, so the shares ``w`` stay as they
+    are."""
+    return (np.asarray(start, dtype=np.int32) - np.asarray(offset, dtype=np.int32)[:, None])
+
+
 def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each pixel's share in the bins along e.
+    """Each pixel's share in the bins along e (windows centred on the blocks; see
+    :func:`moved`).
 
     Args:
         e_pixel: ``(n, 2)`` unit vectors of the elongation in the block's pixel axes (x
@@ -55,9 +99,7 @@ def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray
         ``0..p-1``).
     """
     e = np.asarray(e_pixel, dtype=np.float64)
-    c = (p - 1) / 2.0
-    y, x = np.indices((p, p), dtype=np.float64)
-    u0 = (x.ravel() - c)[None, :] * e[:, :1] + (y.ravel() - c)[None, :] * e[:, 1:]  # (n, pp)
+    u0 = _along(e, p)                                                                # (n, pp)
     ax, ay = np.abs(e[:, 0]), np.abs(e[:, 1])
     a = np.maximum(ax, ay)[:, None, None]
     b = np.minimum(ax, ay)[:, None, None]
@@ -109,4 +151,4 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["SPAN", "overlap_weights", "project", "quantised"]
+__all__ = ["SPAN", "moved", "overlap_weights", "project", "quantised", "window_offsets"]

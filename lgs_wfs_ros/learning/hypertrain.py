@@ -500,7 +500,8 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     training = record(rec, spec, samples, gen_s, net, hist, _mae(net, _tensors(check)),
                       "fresh spots of the training prior (margtrain's check set)")
     model = build_model(net, spec, {"lgs_wfs.training": training,
-                                    "lgs_wfs.domain": margtrain.domain(detectors=dets)}, rec.name,
+                                    "lgs_wfs.domain": margtrain.domain(detectors=dets),
+                                    "lgs_wfs.bins_window": "reference"}, rec.name,
                         detector="polar" if set(dets) == {"polar"} else "any")
     path = export.save(model, Path(target))
     return {"path": str(path), "training": training, "history": hist}

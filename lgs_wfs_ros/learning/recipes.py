@@ -101,7 +101,8 @@ class Recipe:
             polar = set(self.detectors) == {"polar"}
             bins = ("column sums" if polar else
                     "light in 1 px bins along e (column sums on polar pixels, each pixel split "
-                    "by its overlap on cartesian ones)")
+                    "by its overlap on cartesian ones, the window moved to the reference's "
+                    "light)")
             form = (f"MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's column sums "
                     f"(along e): (sums / total - reference's, reference's, log10 total)"
                     ) if not self.filters else (
@@ -230,7 +231,8 @@ RECIPES["ann_conv"] = Recipe(
     loss="fisher", seed=16, detectors=("polar",) * 4 + ("cartesian",) * 3,
     note="both detectors: 16 filters per subaperture set by convolutions over its reference from "
          "the pupil calibration, applied to the light in 1 px bins along e (polar: the column "
-         "sums; cartesian, e at any angle: each pixel split by its overlap); every radius to "
+         "sums; cartesian, e at any angle: each pixel split by its overlap, the window of "
+         "bins moved to the reference's light); every radius to "
          "35 m, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian

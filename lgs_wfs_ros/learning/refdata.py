@@ -217,14 +217,25 @@ def split(n: int, detectors=("polar",)) -> dict:
     return out
 
 
+#: where a cartesian block's window of bins along e sits: "reference", moved to its stale
+#: reference's light (:func:`..centroiding.bins_along_e.window_offsets`, what the
+#: centroider does with a model declaring ``lgs_wfs.bins_window: reference``); "centred"
+#: on the block (models trained before 2026-11-27 06:00 UTC)
+WINDOWS = ("reference", "centred")
+
+
 def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_SPEC,
-                   sensor: Sensor = Sensor(), detector: str = "polar") -> MarginalPairs:
+                   sensor: Sensor = Sensor(), detector: str = "polar",
+                   window: str = "reference") -> MarginalPairs:
     """Draw ``n`` spots as :class:`MarginalPairs`: the prior, geometry and noise of
     :func:`pairs` (with ``spec``), each image and reference reduced to its light in 1 px
     bins along e. ``detector`` "polar": e along block x, the bins are the column sums (a
     polar spot is the outer product of its marginals); "cartesian": e at any angle, each
     pixel split over the bins by the overlap of its footprint
-    (:func:`..centroiding.bins_along_e.overlap_weights`, what the centroider reads there)."""
+    (:func:`..centroiding.bins_along_e.overlap_weights`, what the centroider reads there),
+    the spot and its reference through the same window (``window``, :data:`WINDOWS`)."""
+    if window not in WINDOWS:
+        raise ValueError(f"marginal_pairs: window must be one of {WINDOWS}, not {window!r}")
     r = rng.uniform(*spec.radius_m, size=n)
     if detector == "polar":
         e = np.tile([1.0, 0.0], (n, 1))
@@ -236,9 +247,11 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     if detector == "polar":
         marg, refm = counts.sum(axis=1), ref.sum(axis=1)
     else:
-        weights = bins_along_e.overlap_weights(e, sensor.pixels)
-        marg = bins_along_e.project(counts.reshape(n, -1), *weights)
-        refm = bins_along_e.project(ref.reshape(n, -1), *weights)
+        start, w = bins_along_e.overlap_weights(e, sensor.pixels)
+        if window == "reference":
+            start = bins_along_e.moved(start, bins_along_e.window_offsets(ref.reshape(n, -1), e))
+        marg = bins_along_e.project(counts.reshape(n, -1), start, w)
+        refm = bins_along_e.project(ref.reshape(n, -1), start, w)
     tot = refm.sum(axis=1, keepdims=True)
     return MarginalPairs(np.asarray(marg, dtype=np.float32),
                          (refm / np.where(tot > 0, tot, np.inf)).astype(np.float32),
@@ -246,4 +259,4 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
 
 
 __all__ = ["PriorSpec", "broad_profiles", "calibrated", "pairs", "Pairs", "marginal_pairs",
-           "MarginalPairs", "MARGINAL_SPEC", "GRID", "STREAMS", "split", "any_angle"]
+           "MarginalPairs", "MARGINAL_SPEC", "GRID", "STREAMS", "WINDOWS", "split", "any_angle"]
