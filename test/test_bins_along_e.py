@@ -181,6 +181,9 @@ def test_a_model_trained_on_centred_windows_keeps_them(tmp_path):
         old.centroid(f), new.centroid(f)
     assert old.meta["bins_window"] == "centred" and not np.any(old._window)
     assert np.count_nonzero(new._window) > 100
+    assert old.describe()["bins_window"] == {"kind": "centred", "moved_subapertures": 0}
+    assert new.describe()["bins_window"] == {"kind": "reference",
+                                             "moved_subapertures": np.count_nonzero(new._window)}
     with pytest.raises(ValueError, match="bins_window"):
         linear_marginal_model(tmp_path / "c.onnx", metadata={"lgs_wfs.bins_window": "left"})
         options.build("ann", sensor, {"model": str(tmp_path / "c.onnx"), **pup})

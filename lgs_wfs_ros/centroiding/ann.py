@@ -884,6 +884,9 @@ class ANN(Centroider):
         if self.domain.reasons:
             d["warning"] = (f"{self.domain.count} of {self.n} subapertures outside {self.model_name}'s "
                             "training domain (run with out_of_domain = warn): " + "; ".join(self.domain.reasons))
+        if self._bins is not None:       # a marginals model on a cartesian detector
+            d["bins_window"] = {"kind": self.meta["bins_window"],
+                                "moved_subapertures": int(np.count_nonzero(self._window))}
         if self.pupil is not None:
             pupil_cal.describe_into(d, self.pupil)
         return d
