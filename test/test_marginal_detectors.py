@@ -31,20 +31,25 @@ def test_cartesian_spots_are_read_along_their_e():
 
 def test_cartesian_pairs_project_the_rendered_spot():
     """Same draws, rendered: the cartesian pairs are bins_along_e's projection of the very
-    images refdata renders, spot and reference through the window the stale reference
-    places (as the centroider places it), and the shift is t . e."""
-    rng = np.random.default_rng(7)
-    pairs = refdata.marginal_pairs(rng, 20, detector="cartesian")
+    images refdata renders (centred windows by default; with window "reference", spot and
+    reference through the window the stale reference places, as the centroider places it),
+    and the shift is t . e."""
+    centred = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian")
+    pairs = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian", window="reference")
     rng = np.random.default_rng(7)
     r = rng.uniform(*refdata.MARGINAL_SPEC.radius_m, size=20)
     ang = rng.uniform(0.0, 2 * np.pi, size=20)
     e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     t, ref, ph, counts = refdata._spots(rng, refdata.MARGINAL_SPEC, Sensor(), r, e)
     start, w = bins_along_e.overlap_weights(e, 16)
+    np.testing.assert_allclose(centred.marg, bins_along_e.project(counts.reshape(20, -1), start, w), rtol=1e-5)
     start = bins_along_e.moved(start, bins_along_e.window_offsets(ref.reshape(20, -1), e))
     np.testing.assert_allclose(pairs.marg, bins_along_e.project(counts.reshape(20, -1), start, w), rtol=1e-5)
     refm = bins_along_e.project(ref.reshape(20, -1), start, w)
     np.testing.assert_allclose(pairs.refs, refm / refm.sum(axis=1, keepdims=True), rtol=1e-5, atol=1e-7)
+    assert np.any(pairs.marg != centred.marg)
+    with pytest.raises(ValueError, match="window"):
+        refdata.marginal_pairs(np.random.default_rng(7), 2, detector="cartesian", window="left")
     np.testing.assert_allclose(pairs.y[:, 0], (t * e).sum(axis=1), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(pairs.photons, ph)
 

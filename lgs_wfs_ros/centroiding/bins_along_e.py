@@ -15,6 +15,7 @@ one), further than ``p`` bins. The window of bins may then move along ``e`` by a
 number of pixels, ``o``, to where the light is (:func:`window_offsets`, from a reference
 image): bins ``[k - p/2 + o, k - p/2 + o + 1)``. Spots far off centre (a high layer: 3-5 px)
 keep their far end; a spot and its reference read through the same window stay comparable.
+No shipped model reads moved windows (docs/ann_ref.md "Windows moved to the light").
 
 Such bins keep the block's information along ``e`` (1.00-1.006x its Cramer-Rao bound on
 the unseen families, docs/ann_ref.md "What a projection keeps"); whole pixels moved to the

@@ -50,7 +50,7 @@ def features(marg: np.ndarray, refs: np.ndarray) -> np.ndarray:
 
 
 def generate(n: int, seed: int, batch: int = 4096, progress: bool = True,
-             detectors=("polar",), window: str = "reference") -> refdata.MarginalPairs:
+             detectors=("polar",), window: str = "centred") -> refdata.MarginalPairs:
     """``n`` spots of :data:`.refdata.MARGINAL_SPEC` shared among ``detectors``
     (:func:`.refdata.split`); a detector's batch ``k`` comes from
     ``default_rng([seed, k, *refdata.STREAMS[d]])``,
@@ -124,7 +124,7 @@ def predict(path_or_model, pairs: refdata.MarginalPairs) -> np.ndarray:
 
 
 def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED,
-                detectors=("polar",), window: str = "reference") -> float:
+                detectors=("polar",), window: str = "centred") -> float:
     """Mean absolute error along e (px) on the fixed check spots (fresh draws of the prior,
     shared among ``detectors`` and binned through ``window`` as the model's training
     was)."""

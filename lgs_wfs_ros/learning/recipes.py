@@ -62,6 +62,10 @@ class Recipe:
         hyper_conv: filter recipes: hidden channels of a convolutional network over the
             reference's pixels that sets the filters (shift-equivariant: a spot far from the
             block centre is read as one at the centre); empty: a dense tanh 64-64 network.
+        bins_window: marginal recipes on cartesian spots: "centred" (each block's window of
+            bins along e centred on it) or "reference" (moved to the stale reference's light,
+            :data:`.refdata.WINDOWS`; tried for ``ann_conv`` on 2026-11-27 and not kept:
+            docs/ann_ref.md "Windows moved to the light").
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -91,6 +95,7 @@ class Recipe:
     seed: int = 1
     filters: int = 0
     hyper_conv: tuple = ()
+    bins_window: str = "centred"
     shipped: bool = True
     note: str = ""
 
@@ -101,8 +106,8 @@ class Recipe:
             polar = set(self.detectors) == {"polar"}
             bins = ("column sums" if polar else
                     "light in 1 px bins along e (column sums on polar pixels, each pixel split "
-                    "by its overlap on cartesian ones, the window moved to the reference's "
-                    "light)")
+                    "by its overlap on cartesian ones" + (", the window moved to the "
+                    "reference's light)" if self.bins_window == "reference" else ")"))
             form = (f"MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's column sums "
                     f"(along e): (sums / total - reference's, reference's, log10 total)"
                     ) if not self.filters else (
@@ -231,8 +236,7 @@ RECIPES["ann_conv"] = Recipe(
     loss="fisher", seed=16, detectors=("polar",) * 4 + ("cartesian",) * 3,
     note="both detectors: 16 filters per subaperture set by convolutions over its reference from "
          "the pupil calibration, applied to the light in 1 px bins along e (polar: the column "
-         "sums; cartesian, e at any angle: each pixel split by its overlap, the window of "
-         "bins moved to the reference's light); every radius to "
+         "sums; cartesian, e at any angle: each pixel split by its overlap); every radius to "
          "35 m, 100-3000 photons")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian

@@ -217,16 +217,16 @@ def split(n: int, detectors=("polar",)) -> dict:
     return out
 
 
-#: where a cartesian block's window of bins along e sits: "reference", moved to its stale
-#: reference's light (:func:`..centroiding.bins_along_e.window_offsets`, what the
-#: centroider does with a model declaring ``lgs_wfs.bins_window: reference``); "centred"
-#: on the block (models trained before 2026-11-27 06:00 UTC)
-WINDOWS = ("reference", "centred")
+#: where a cartesian block's window of bins along e sits: "centred" on the block (every
+#: shipped model), or "reference", moved to its stale reference's light
+#: (:func:`..centroiding.bins_along_e.window_offsets`, what the centroider does with a model
+#: declaring ``lgs_wfs.bins_window: reference``; a recipe's ``bins_window``)
+WINDOWS = ("centred", "reference")
 
 
 def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_SPEC,
                    sensor: Sensor = Sensor(), detector: str = "polar",
-                   window: str = "reference") -> MarginalPairs:
+                   window: str = "centred") -> MarginalPairs:
     """Draw ``n`` spots as :class:`MarginalPairs`: the prior, geometry and noise of
     :func:`pairs` (with ``spec``), each image and reference reduced to its light in 1 px
     bins along e. ``detector`` "polar": e along block x, the bins are the column sums (a
