@@ -152,8 +152,9 @@ def test_a_bag_recorded_from_the_shm_path_joins_as_today(ros, tmp_path):
     stamps, est, truth, join = joined(data.truth, data.segments[0].slopes)
     assert len(stamps) == n and np.isfinite(est).any()
     # 20 Hz of wall time over a run of 60 frames at 100 Hz: ~12 (lockstep under load makes
-    # the run longer: 21 seen once), far fewer than the 60 frames sent
-    assert 6 <= data.frame_count < n // 2
+    # the run longer: 21 seen once; a loaded CI host gave 5), far fewer than the 60 sent.
+    # How many depends on wall time, which a test must not assert: some, and decimated
+    assert 1 <= data.frame_count < n // 2
     assert set(data.frames.stamps) <= set(data.truth.stamps)
     assert data.frames.data.shape[1:] == sim.sim.sensor.frame_shape
 
