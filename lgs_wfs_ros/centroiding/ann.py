@@ -182,7 +182,7 @@ def read_metadata(meta_map: dict) -> dict:
               ("output_frame", ("local", "detector", "block")),
               ("conditioning", ("none", "e", "e_r", "reference")),
               ("conditioning_frame", ("detector", "pixel")),
-              ("bins_window", ("centred", "reference"))]
+              ("bins_window", bins_along_e.WINDOWS)]
     for key, allowed in checks:
         if md[key] not in allowed:
             raise ValueError(f"ann: metadata lgs_wfs.{key} must be one of {list(allowed)}, got {md[key]!r}")
@@ -483,6 +483,8 @@ class ANN(Centroider):
         if projectable:         # centred until the first reference places the windows
             self._centred = bins_along_e.overlap_weights(self.layout.e, self.p)
             self._place_window(np.zeros(self.n, dtype=np.int32))
+            if md["bins_window"] == "centred":    # placed for good: no need of the exact split
+                del self._centred
         _check_width(inputs[self.input_name], self.p if self.marginals else self.p * self.p,
                      "pixel input", self.n)
         self.cond, self._offset = None, None

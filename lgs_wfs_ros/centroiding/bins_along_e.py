@@ -29,6 +29,11 @@ import numpy as np
 #: pixels of a block whose footprint along e can touch a bin: at most 3 (width <= sqrt 2)
 SPAN = 3
 
+#: where a block's window of bins sits: "centred" on the block, or "reference", moved to its
+#: reference's light (:func:`window_offsets`); a model declares which in
+#: ``lgs_wfs.bins_window``, a training recipe in ``bins_window``
+WINDOWS = ("centred", "reference")
+
 
 def _ramp_integral(x: np.ndarray) -> np.ndarray:
     """``int_-inf^x clip(s, 0, 1) ds``."""
@@ -152,4 +157,4 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["SPAN", "moved", "overlap_weights", "project", "quantised", "window_offsets"]
+__all__ = ["SPAN", "WINDOWS", "moved", "overlap_weights", "project", "quantised", "window_offsets"]

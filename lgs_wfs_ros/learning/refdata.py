@@ -217,11 +217,8 @@ def split(n: int, detectors=("polar",)) -> dict:
     return out
 
 
-#: where a cartesian block's window of bins along e sits: "centred" on the block (every
-#: shipped model), or "reference", moved to its stale reference's light
-#: (:func:`..centroiding.bins_along_e.window_offsets`, what the centroider does with a model
-#: declaring ``lgs_wfs.bins_window: reference``; a recipe's ``bins_window``)
-WINDOWS = ("centred", "reference")
+#: where a cartesian block's window of bins along e sits (every shipped model: "centred")
+WINDOWS = bins_along_e.WINDOWS
 
 
 def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_SPEC,
