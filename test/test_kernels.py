@@ -171,3 +171,33 @@ def test_corr_kernel_climbs_to_the_peak_from_a_wrong_start():
     stuck = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog + [2.0, -2.0],
                               corr.background, climbs=0)
     assert np.abs(stuck - want).max() > 0.5
+
+
+def test_add_counts_adds_a_frame_as_numpy_does_and_refuses_what_it_cannot_add():
+    """The pupil calibration's per-frame accumulation: uint16 counts into uint32, exact
+    (65535 counts a pixel, many frames); a non-contiguous view is refused (False, nothing
+    added), not added into a copy."""
+    frame = _frame(SENSORS[0], 3, high=True)
+    acc = np.zeros(frame.shape, np.uint32)
+    for _ in range(3):
+        assert kernels.add_counts(acc, frame)
+    np.testing.assert_array_equal(acc, 3 * frame.astype(np.uint32))
+    before = acc.copy()
+    assert not kernels.add_counts(acc, frame[:, ::-1])
+    assert not kernels.add_counts(acc, frame.astype(np.int32))
+    np.testing.assert_array_equal(acc, before)
+
+
+def test_corr_kernel_reads_its_references_at_int16_without_moving_the_peak():
+    """The references go to the pass quantised (int16, one scale each); the peak fit does
+    not see the scale, and the quantisation moves no centroid by more than 1e-3 px."""
+    sensor, frames = _simulated("polar", 1)
+    corr = make_centroider("corr", sensor)
+    refs, ref_cog = corr._ref_kernel()
+    assert refs.dtype == np.int16 and np.abs(refs).max(axis=1).min() == 32767
+    o = kernels.origins(corr)
+    got = kernels.corr_peak(frames[0], o, corr.p, refs, ref_cog, corr.background)
+    exact = corr.correlation_map(geometry.frame_to_stack(frames[0], geometry.layout(sensor)))
+    from lgs_wfs_ros.centroiding.correlation import _parabola_peak
+    want = _parabola_peak(exact, log=True) - exact.shape[-1] / 2
+    assert np.abs(got - want).max() < 1e-3

@@ -300,3 +300,19 @@ def pixel_coords(p: int, centre: float) -> tuple[np.ndarray, np.ndarray]:
     """``(p*p,)`` x (column) and y (row) offsets of each pixel from ``centre``, row-major."""
     y, x = np.indices((p, p), dtype=float)
     return (x - centre).ravel(), (y - centre).ravel()
+
+
+
+def all_columns(mask: np.ndarray) -> np.ndarray:
+    """``(n,)`` bool: rows of ``mask (n, k)`` true in every column, by ``k`` 1-D ands
+    (numpy's ``all(axis=1)`` over a short axis is ~10x slower: 0.04 ms for 2,784 x 2,
+    a sixth of the plain CoG's whole frame)."""
+    out = mask[:, 0].copy()
+    for j in range(1, mask.shape[1]):
+        out &= mask[:, j]
+    return out
+
+
+def finite_rows(x: np.ndarray) -> np.ndarray:
+    """``(n,)`` bool: rows of ``x (n, k)`` with every value finite."""
+    return all_columns(np.isfinite(x))

@@ -48,7 +48,7 @@ import numpy as np
 
 from ..optics.gaussian_spot import elongation_fwhm_px, model_spots
 from . import kernels
-from .base import Centroider, check_options, choice, flag, number
+from .base import Centroider, check_options, choice, finite_rows, flag, number
 from . import pupil as pupil_cal
 from .linearize import ResponseMap, transform_covariance
 from .reference import ReferenceSource, fourier_derivatives, integer_shift
@@ -512,7 +512,7 @@ class CMF(Centroider):
         else:
             m, (r, fok, _, r3, r3_32, q, rsum, _) = self._stack_products(data)
         flux = m[:, 2] - self.background * self.p * self.p
-        ok = np.isfinite(m).all(axis=1) & (m[:, 2] > 0) & (flux > 0) & fok
+        ok = finite_rows(m) & (m[:, 2] > 0) & (flux > 0) & fok
         with np.errstate(divide="ignore", invalid="ignore"):
             out = (m[:, :2] - self.background * rsum) / flux[:, None]
         self._nea_state = ("q", q, flux, ok)

@@ -15,7 +15,7 @@ import numpy as np
 from . import kernels
 from . import pupil as pupil_cal
 from ..optics.gaussian_spot import FWHM_PER_SIGMA, elongation_fwhm_px, model_spots
-from .base import Centroider, check_options, choice, flag, number, pixel_coords
+from .base import Centroider, check_options, choice, finite_rows, flag, number, pixel_coords
 
 
 
@@ -84,7 +84,7 @@ class CoG(Centroider):
             w = self._w3 if flat.dtype == np.float64 else self._w332
             m = (flat @ w).astype(np.float64)                   # (n, 3)
         denom = m[:, 0] - self.background * self.p * self.p
-        ok = np.isfinite(m).all(axis=1) & (m[:, 0] > 0) & (denom > 0)
+        ok = finite_rows(m) & (m[:, 0] > 0) & (denom > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             out = m[:, 1:] / denom[:, None]
         if self.pupil is not None:

@@ -17,11 +17,14 @@ zero lag is at ``p/2`` (8 for 16 px) whatever the padding: ``ours = aotools - p/
 It also subtracts each image's and the reference's minimum first (``subtract_min=True``
 here) and takes ``abs`` of the inverse FFT (identical for non-negative images).
 
-Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~1.2 ms. An integer frame with a fixed reference (the
-default pupil one), linear correlation and the 3 x 3 fits goes through one compiled pass
-instead (:func:`.kernels.corr_peak`): only the 9 lags the fit reads are evaluated, around
-the whole lag the CoG predicts (moved to the local maximum if it is not one). Where the map
-has one maximum that is the map's fit (polar pixels: equal to 2e-5 px, the float32 sums);
+Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~0.8-0.9 ms (1.0 ms the
+whole per-frame part with the pupil calibration's accumulation). An integer frame with a
+fixed reference (the default pupil one), linear correlation and the 3 x 3 fits goes through
+one compiled pass instead (:func:`.kernels.corr_peak`): only the 9 lags the fit reads are
+evaluated, in one sweep over the reference, around the whole lag the CoG predicts (moved to
+the local maximum if it is not one), the reference read as int16 (one scale a block, which
+the fit does not see). Where the map has one maximum that is the map's fit (polar pixels:
+equal to 1e-4 px, the float32 sums and the int16 reference);
 where a spot elongated across the pixel axes makes a ridge with noise-made local maxima
 (0.1-0.2 % of cartesian blocks) it is the maximum nearest to the CoG's prediction.
 """
@@ -32,7 +35,7 @@ import numpy as np
 
 from . import kernels
 from . import pupil as pupil_cal
-from .base import Centroider, check_options, choice, flag, number
+from .base import Centroider, check_options, choice, finite_rows, flag, number
 from .cmf import CMF
 from .reference import ReferenceSource
 
@@ -124,7 +127,7 @@ class Correlation(Centroider):
         refs, ref_cog = self._ref_kernel()
         out = kernels.corr_peak(data, kernels.origins(self), self.p, refs, ref_cog,
                                 self.background, log=self.peak == "gauss")
-        return self.finish(out, np.isfinite(out).all(axis=1) & self._ref_ok)
+        return self.finish(out, finite_rows(out) & self._ref_ok)
 
     def _ref_kernel(self):
         """``(refw, ref_cog (n, 2))``: the references less the background, laid out for

@@ -38,7 +38,7 @@ import numpy as np
 from . import kernels
 from ..optics import fast_frames, geometry
 from ..optics.model_spot import shift_to_detector
-from .base import check_options, number
+from .base import check_options, finite_rows, number
 from .cmf import CMF, FILTERS, GRID_DEFAULTS, solve_filter
 from . import pupil as pupil_cal
 from .cog import TabledCoG
@@ -170,7 +170,7 @@ class GMF(TabledCoG):
             out, index = self._numpy_slopes(flat)
             tot = flat.sum(axis=1)
             seen = self.pupil.observe(flat, np.isfinite(tot) & (tot > 0))
-        ok = (index >= 0) & np.isfinite(out).all(axis=1) & self._ok
+        ok = (index >= 0) & finite_rows(out) & self._ok
         if seen:
             self._refresh()
         return self.finish(out, ok)

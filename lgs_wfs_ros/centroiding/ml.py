@@ -40,7 +40,7 @@ import numpy as np
 from . import kernels
 from . import pupil as pupil_cal
 from .cog import TabledCoG
-from .base import check_options, number
+from .base import check_options, finite_rows, number
 from ..optics.model_spot import ProfileSpots
 
 #: smallest tabulated light, relative to the largest of the subaperture's axis (a count far
@@ -172,7 +172,7 @@ class ML(TabledCoG):
                                     self._bias, t.margin, acc)
             if self.pupil.observed_marginals(acc is not None):
                 self._refresh()                   # the new tables now, on the refit's frame
-            return self.finish(out, np.isfinite(out).all(axis=1))
+            return self.finish(out, finite_rows(out))
         flat = self.float_stack(data).reshape(self.n, -1)
         tot = flat.sum(axis=1, dtype=np.float64)
         ok = np.isfinite(tot) & (tot > 0)

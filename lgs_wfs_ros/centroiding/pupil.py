@@ -48,6 +48,7 @@ from ..optics import geometry
 from ..optics.gaussian_spot import FWHM_PER_SIGMA
 from ..optics.model_spot import ProfileSpots, Projection, altitude_nodes, node_density, projected_hats
 from ..optics.sodium import gaussian_profile, harmonic_altitude
+from . import kernels
 from .base import flag, number
 from .linearize import ResponseMap, chebyshev_nodes
 
@@ -258,7 +259,8 @@ class PupilCalibration:
             if buf is None or buf.shape != data.shape:
                 buf = np.zeros(data.shape, dtype=dtype)
                 setattr(self, name, buf)
-            np.add(buf, data, out=buf, casting="unsafe")
+            if not kernels.add_counts(buf, data):
+                np.add(buf, data, out=buf, casting="unsafe")
             self._count += 1
         return self._tick()
 
