@@ -275,3 +275,22 @@ def test_bias_option_needs_a_reference_reading_model():
         table.build("ann", one, {"model": "ann_1k", "bias": "pupil"})
     with pytest.raises(ValueError, match="bias"):
         table.build("ann", polar, {"bias": "yes"})
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_ann_on_a_frame_equals_the_stack_path(tmp_path, dtype):
+    """A folded network on a whole frame (an integer frame: the valid blocks cut and cast by
+    the compiled pass; a float one: the whole block grid) gives what the valid-block stack
+    gives, a dark block NaN; the compiled pass must place each block where the layout says
+    (a block read from the wrong place moves its centroid by pixels)."""
+    path = build(tmp_path / "cog.onnx", cog_weights(), META)
+    c = make_centroider("ann", SENSOR, model=str(path))
+    assert c.folded is not None
+    x = np.rint(stack(5) * 100).astype(dtype)
+    x[7] = 0
+    frame = geometry.stack_to_frame(x, LAY)
+    got = c.centroid(frame)
+    want = c.centroid(x.astype(np.float32))
+    assert np.isnan(got[7]).all() and np.isnan(want[7]).all()
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_allclose(got, make_centroider("cog", SENSOR).centroid(x), atol=1e-4)

@@ -735,8 +735,13 @@ class ANN(Centroider):
             return self._centroid_marginals(raw)
         if self._refit is not None:
             return self._centroid_hyper_pixels(raw)
-        rows = self.frame_rows(raw) if self.folded is not None and self._all_blocks else None
-        if rows is not None:                            # a frame: every block in one pass
+        integer = self.folded is not None and kernels.fits(raw, self.sensor.frame_shape)
+        rows = None
+        if not integer and self.folded is not None and self._all_blocks:
+            rows = self.frame_rows(raw)
+        if integer:                                     # valid blocks, one compiled pass
+            out, total = self._run_integer_frame(raw)
+        elif rows is not None:                          # a frame: every block in one pass
             x = rows if rows.dtype == np.float32 else rows.astype(np.float32)
             self._observe(rows=x)
             out, total = self._run_folded(x, all_blocks=True)
@@ -747,6 +752,18 @@ class ANN(Centroider):
             out, total = self._run_stack(raw)
         ok = np.isfinite(total) & (total > 0)
         return self.finish(self._debiased(self._block_axes(out * self.meta["output_scale"])), ok)
+
+    def _run_integer_frame(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(raw output ``(n, 2)``, totals ``(n,)``) of the folded model on an integer frame:
+        the valid blocks cut and cast in one compiled pass (0.1-0.2 ms; numpy's cast of
+        the whole block grid ~0.3 ms, and the model then ran on ~30 % more blocks), the
+        calibration's sums by the compiled add of the frame; a refit installs its
+        references for this frame."""
+        x = kernels.block_rows(raw, kernels.origins(self), self.p, out=self.__dict__.get("_valid_x"))
+        self._valid_x = x
+        if self.pupil is not None and self.pupil.observe_frame(raw):
+            self._install_reference()
+        return self._run_folded(x)
 
     def _centroid_marginals(self, raw: np.ndarray) -> np.ndarray:
         """A marginals model: each block's column and row sums (one compiled pass over an
