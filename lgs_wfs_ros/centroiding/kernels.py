@@ -500,18 +500,20 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = ey
 
 
-def _lag_product_impl(xw, refw, p, m, tx, ty):
+def _lag_product_impl(xw, refw, p, m, tx, ty, k0, k1):
     # c(tx, ty) = sum_u x(u + t) ref(u). xw holds the block at rows p..2p-1, columns
     # m..m+p-1 of rows W = p + 2m wide, zero elsewhere (3p rows); refw the reference in the
-    # same row layout (p rows). For |tx| <= m one contiguous dot of p W values (the zero
-    # columns absorb the shift: vectorised); beyond, the overlap summed directly.
+    # same row layout (p rows), zero outside its entries k0..k1-1. For |tx| <= m one
+    # contiguous dot over those entries (the zero columns absorb the shift: vectorised);
+    # beyond, the overlap summed directly.
     w = p + 2 * m
-    n = p * w
     if -m <= tx <= m:
-        xs = xw[(p + ty) * w + tx:(p + ty) * w + tx + n]
+        base = (p + ty) * w + tx
+        xs = xw[base + k0:base + k1]
+        rs = refw[k0:k1]
         acc = np.float32(0.0)
-        for k in range(n):
-            acc += xs[k] * np.float32(refw[k])
+        for k in range(k1 - k0):
+            acc += xs[k] * np.float32(rs[k])
         return acc
     acc = np.float32(0.0)
     for i in range(max(0, -ty), min(p, p - ty)):
@@ -520,14 +522,16 @@ def _lag_product_impl(xw, refw, p, m, tx, ty):
     return acc
 
 
-def _lag_block9_impl(xw, refw, p, m, lx, ly, v):
+def _lag_block9_impl(xw, refw, p, m, lx, ly, k0, k1, v):
     # the nine c(lx + dx, ly + dy), dx, dy in -1..1, into v (row-major: k = 3 (dy + 1) +
     # dx + 1), for |lx| < m: one pass over the reference's p W values, each read once for
     # nine products (nine dots of _lag_product read it nine times: the loads bound the pass).
-    # Slices, not computed indices: numba's negative-index wrap would stop vectorisation
+    # Slices, not computed indices: numba's negative-index wrap would stop vectorisation.
+    # Only the reference's entries k0..k1-1 (its first to last non-zero one) are swept
     w = p + 2 * m
-    n = p * w
-    b0 = (p + ly - 1) * w + lx - 1
+    n = k1 - k0
+    b0 = (p + ly - 1) * w + lx - 1 + k0
+    rs = refw[k0:k1]
     x0 = xw[b0:b0 + n]
     x1 = xw[b0 + 1:b0 + 1 + n]
     x2 = xw[b0 + 2:b0 + 2 + n]
@@ -539,7 +543,7 @@ def _lag_block9_impl(xw, refw, p, m, lx, ly, v):
     x8 = xw[b0 + 2 * w + 2:b0 + 2 * w + 2 + n]
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = np.float32(0.0)
     for k in range(n):
-        r = np.float32(refw[k])
+        r = np.float32(rs[k])
         a0 += r * x0[k]
         a1 += r * x1[k]
         a2 += r * x2[k]
@@ -560,7 +564,7 @@ def _lag_block9_impl(xw, refw, p, m, lx, ly, v):
     v[8] = a8
 
 
-def _corr_peak_impl(frame, origins, p, refw, m, ref_cog, background, log, climbs, out):
+def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log, climbs, out):
     # per block: the block less the background into the padded buffer, its CoG; the whole
     # lag nearest to CoG - the reference's CoG; the 3 x 3 correlation values around it,
     # moved to their maximum until it is the centre (at most ``climbs`` moves, each keeping
@@ -601,7 +605,9 @@ def _corr_peak_impl(frame, origins, p, refw, m, ref_cog, background, log, climbs
         sx = tx - c * ts                                 # sum of (j - c)(q - background)
         sy = ty - c * ts
         ref = refw[b]
-        if not s > 0:
+        k0 = spans[b, 0]
+        k1 = spans[b, 1]
+        if not s > 0 or k1 <= k0:
             out[b, 0] = np.nan
             out[b, 1] = np.nan
             continue
@@ -609,10 +615,10 @@ def _corr_peak_impl(frame, origins, p, refw, m, ref_cog, background, log, climbs
         lx = min(max(int(np.floor(sx / s - ref_cog[b, 0] + 0.5)), -lim), lim)
         ly = min(max(int(np.floor(sy / s - ref_cog[b, 1] + 0.5)), -lim), lim)
         if -m < lx < m:
-            _lag_block9(xw, ref, p, m, lx, ly, v)
+            _lag_block9(xw, ref, p, m, lx, ly, k0, k1, v)
         else:
             for k in range(9):
-                v[k] = _lag_product(xw, ref, p, m, lx + k % 3 - 1, ly + k // 3 - 1)
+                v[k] = _lag_product(xw, ref, p, m, lx + k % 3 - 1, ly + k // 3 - 1, k0, k1)
         for step in range(climbs + 1):
             best = 0
             for k in range(1, 9):
@@ -634,7 +640,7 @@ def _corr_peak_impl(frame, origins, p, refw, m, ref_cog, background, log, climbs
                 if -1 <= ox <= 1 and -1 <= oy <= 1:
                     w9[k] = v[(oy + 1) * 3 + ox + 1]
                 else:
-                    w9[k] = _lag_product(xw, ref, p, m, nx + k % 3 - 1, ny + k // 3 - 1)
+                    w9[k] = _lag_product(xw, ref, p, m, nx + k % 3 - 1, ny + k // 3 - 1, k0, k1)
             for k in range(9):
                 v[k] = w9[k]
             lx = nx
@@ -922,19 +928,27 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
 CORR_PAD = 3
 
 
-def corr_rows(refs: np.ndarray) -> np.ndarray:
-    """``(n, p * (p + 2 CORR_PAD))`` int16: references ``(n, p, p)`` laid out for
-    :func:`corr_peak` (each row between ``CORR_PAD`` zeros each side), each scaled to its
-    largest magnitude at 32767 (:func:`quantize`; the peak fit does not see a reference's
-    scale). Half the bytes of float32: the pass reads every reference each frame (1.96 MB
-    a full pupil instead of 3.92 MB), and that read bounded it."""
+def corr_rows(refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, spans)``: references ``(n, p, p)`` laid out for :func:`corr_peak`: ``rows
+    (n, p * (p + 2 CORR_PAD))`` int16, each row between ``CORR_PAD`` zeros each side, each
+    reference scaled to its largest magnitude at 32767 (:func:`quantize`; the peak fit does
+    not see a reference's scale; half the bytes of float32: the pass reads every reference
+    each frame), and ``spans (n, 2)`` int64, the first and one past the last non-zero entry
+    of each row (the pass sweeps only those: on polar pixels the rows across e beyond the
+    spot's core are zero at this precision)."""
     n, p, _ = refs.shape
     out = np.zeros((n, p, p + 2 * CORR_PAD))
     out[:, :, CORR_PAD:CORR_PAD + p] = refs
-    return quantize(out.reshape(n, -1))[0]
+    rows = quantize(out.reshape(n, -1))[0]
+    nz = rows != 0
+    first = nz.argmax(axis=1)
+    last = rows.shape[1] - nz[:, ::-1].argmax(axis=1)
+    lit = nz.any(axis=1)
+    spans = np.stack([np.where(lit, first, 0), np.where(lit, last, 0)], axis=1).astype(np.int64)
+    return rows, spans
 
 
-def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refw: np.ndarray,
+def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refw: tuple,
               ref_cog: np.ndarray, background: float = 0.0, log: bool = True,
               climbs: int = 4) -> np.ndarray:
     """Correlation centroids (:class:`.correlation.Correlation`, linear correlation, peak
@@ -948,10 +962,13 @@ def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refw: np.ndarray,
     block axes, NaN for a block without light. Where the map has one maximum this is the
     whole map's peak fit."""
     n = origins.shape[0]
-    if refw.shape != (n, p * (p + 2 * CORR_PAD)) or refw.dtype != np.int16:
-        raise ValueError("corr_peak: refw must be corr_rows(references) (int16)")
+    refw, spans = refw
+    if (refw.shape != (n, p * (p + 2 * CORR_PAD)) or refw.dtype != np.int16
+            or spans.shape != (n, 2) or spans.dtype != np.int64):
+        raise ValueError("corr_peak: refw must be corr_rows(references)")
     out = np.empty((n, 2))
-    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refw), CORR_PAD,
+    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refw), np.ascontiguousarray(spans),
+               CORR_PAD,
                np.ascontiguousarray(ref_cog, dtype=np.float64), float(background), bool(log),
                int(climbs), out)
     return out
