@@ -131,8 +131,8 @@ class Correlation(Centroider):
 
     def _ref_kernel(self):
         """``(refw, ref_cog (n, 2))``: the references less the background, laid out for
-        :func:`.kernels.corr_peak` (:func:`.kernels.corr_rows`), and their CoGs (px from the
-        block centre)."""
+        :func:`.kernels.corr_peak` (``refw``: the ``(rows, spans)`` pair of
+        :func:`.kernels.corr_rows`), and their CoGs (px from the block centre)."""
         self._ref_fft()                              # the references' validity, cached
         if getattr(self, "_kernel_version", None) != self.ref.version:
             ref = self._prep(np.asarray(self.ref.images, dtype=float))
