@@ -76,6 +76,9 @@ ESTIMATORS = {
     # the default ann on both detectors since 2026-11-27 (trained on both; on cartesian
     # pixels it reads bins along e, each pixel split by its overlap: centroiding/bins_along_e.py)
     "ann_conv": ("ann", {"model": "ann_conv"}),
+    # the same network on cartesian pixels through whole-pixel sums along the pixel-grid
+    # direction nearest to e (no pixel split; bins_along_e.grid_weights); polar: = ann_conv
+    "ann_grid": ("ann", {"model": "ann_conv", "bins": "grid"}),
     # with the altitude tracker (off by default: it takes the atmosphere's focus too)
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),

@@ -187,3 +187,106 @@ def test_a_model_trained_on_centred_windows_keeps_them(tmp_path):
     with pytest.raises(ValueError, match="bins_window"):
         linear_marginal_model(tmp_path / "c.onnx", metadata={"lgs_wfs.bins_window": "left"})
         options.build("ann", sensor, {"model": str(tmp_path / "c.onnx"), **pup})
+
+
+def test_grid_direction_is_the_nearest_pixel_grid_direction_along_e():
+    """Of the eight signed grid directions (columns, rows, diagonals, each either way) the
+    one nearest to e: at most 22.5 deg from it, never pointing against it."""
+    deg = np.linspace(0.0, 360.0, 721)[:-1] + 0.1
+    e = np.stack([np.cos(np.radians(deg)), np.sin(np.radians(deg))], axis=1)
+    d = bins_along_e.grid_direction(e)
+    eight = np.concatenate([bins_along_e.GRID_DIRECTIONS, -bins_along_e.GRID_DIRECTIONS])
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    np.testing.assert_allclose((d * e).sum(axis=1), (e @ eight.T).max(axis=1))
+    assert (d * e).sum(axis=1).min() >= np.cos(np.radians(22.5)) - 1e-12
+    assert set(bins_along_e.grid_code(d)) == {0, 1, 2, 3}
+
+
+def _sums_on_unit_bins(img, d):
+    """Bins along d by brute force: each whole-pixel sum along the grid (columns, rows,
+    diagonals) spread evenly over its width along d (1 px, or 1 / sqrt 2 on a diagonal)
+    by many points, and histogrammed in 1 px bins."""
+    p = img.shape[0]
+    c = (p - 1) / 2
+    y, x = np.indices((p, p))
+    u = ((x - c) * d[0] + (y - c) * d[1]).ravel()             # every pixel of a sum: one u
+    width = np.sqrt(0.5) if abs(d[0]) > 0.1 and abs(d[1]) > 0.1 else 1.0
+    t = (np.arange(4000) + 0.5) / 4000 - 0.5
+    out = np.zeros(p)
+    for value, ui in zip(img.ravel(), u):
+        out += value * np.histogram(ui + width * t, bins=p, range=(-p / 2, p / 2))[0] / t.size
+    return out
+
+
+@pytest.mark.parametrize("deg", [10.0, 40.0, 100.0, 130.0, 200.0, 318.0])
+def test_grid_bins_are_whole_pixel_sums_along_the_grid_direction(deg):
+    """Columns, rows, diagonals and anti-diagonals, either way along e: whole-pixel sums on
+    1 px bins along the grid direction (a column sum is a bin; a diagonal sum is spread
+    over its 1 / sqrt 2 px), every pixel of a sum split alike; not the overlap split."""
+    rng = np.random.default_rng(int(deg))
+    e = np.array([[np.cos(np.radians(deg)), np.sin(np.radians(deg))]])
+    img = np.zeros((P, P))
+    img[3:13, 2:14] = rng.random((10, 12))
+    start, w, d = bins_along_e.grid_weights(e, P)
+    got = bins_along_e.project(img.reshape(1, -1), start, w)[0]
+    np.testing.assert_allclose(got, _sums_on_unit_bins(img, d[0]), atol=1e-3 * img.max())
+    if bins_along_e.grid_code(d)[0] in (0, 2):               # an axis: the plain sums
+        sums = img.sum(axis=0) if abs(d[0, 0]) > 0.5 else img.sum(axis=1)
+        np.testing.assert_allclose(got, sums if d[0].sum() > 0 else sums[::-1], atol=1e-12)
+    overlap = bins_along_e.project(img.reshape(1, -1), *bins_along_e.overlap_weights(e, P))[0]
+    assert np.abs(got - overlap).max() > 0.05 * img.max()
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_compiled_grid_bins_are_the_quantised_split_of_the_sums():
+    """The frame pass for the grid bins (whole-row sums, then each sum's split) gives the
+    quantised split of every pixel of the full cartesian pupil (all four kinds of sums, both
+    ways), and the block's moments exactly."""
+    sensor = Sensor(detector="cartesian")
+    lay = geometry.layout(sensor)
+    rng = np.random.default_rng(6)
+    frame = rng.integers(0, 4000, size=sensor.frame_shape).astype(np.uint16)
+    start, w, d = bins_along_e.grid_weights(lay.e, P)
+    s8, _, wq = bins_along_e.quantised(start, w)
+    code, tstart, tw = bins_along_e.grid_tables(d, s8, wq)
+    assert set(code) == {0, 1, 2, 3}
+    bins, mom = kernels.grid_bins(frame, kernels.block_origins(lay), P, code, tstart, tw)
+    flat = geometry.frame_to_stack(frame, lay).reshape(lay.n_valid, -1).astype(np.float64)
+    np.testing.assert_allclose(bins, bins_along_e.project(flat, s8, wq), rtol=1e-5, atol=1e-3)
+    y, x = np.indices((P, P))
+    np.testing.assert_array_equal(mom, np.stack([flat.sum(1), flat @ x.ravel(), flat @ y.ravel()], 1))
+
+
+def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_direction(tmp_path):
+    """With bins = grid the linear model (the CoG of its bins less the reference's) gives
+    the shift along the grid direction d, s . d, and the calibrated CoG across e, s . v;
+    on frames (the compiled pass) as on stacks."""
+    sensor = Sensor(detector="cartesian", photons=1000.0)
+    path = linear_marginal_model(tmp_path / "marg.onnx")
+    pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
+    ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "grid",
+                                        **pup})
+    cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
+    lay = geometry.layout(sensor)
+    e = np.asarray(lay.e)
+    v = np.stack([-e[:, 1], e[:, 0]], axis=1)
+    start, w, d = bins_along_e.grid_weights(e, P)
+    s8, _, wq = bins_along_e.quantised(start, w)
+    pos = np.arange(P) - (P - 1) / 2
+
+    def bins_cog(stack):
+        b = bins_along_e.project(stack.reshape(lay.n_valid, -1), s8, wq)
+        return b @ pos / b.sum(axis=1)
+
+    for k, f in enumerate(frames(sensor, 5)):
+        data = f if k % 2 else geometry.frame_to_stack(f, lay)
+        ref = ann.pupil.counts()[0]
+        a, c = ann.centroid(data), cog.centroid(data)
+        if k % 3 == 2:
+            ref = ann.pupil.counts()[0]
+        stack = geometry.frame_to_stack(f, lay).astype(float)
+        np.testing.assert_allclose((a * d).sum(axis=1), bins_cog(stack) - bins_cog(ref), atol=2e-4)
+        np.testing.assert_allclose((a * v).sum(axis=1), (c * v).sum(axis=1), atol=2e-4)
+    assert ann.describe()["options"]["bins"] == "grid"
+    with pytest.raises(ValueError, match="bins"):
+        options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "diagonal"})

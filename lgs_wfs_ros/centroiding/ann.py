@@ -434,10 +434,15 @@ class ANN(Centroider):
             whose reading of the noise-free reference is its mean reading under photon noise,
             "none" otherwise). Needs a reference-reading model; the option as run (pupil or
             none) is in ``describe()["options"]``.
+        bins: a column-sum model on a cartesian detector: "overlap" (default: each pixel
+            split over the 1 px bins along e by its footprint, :func:`.bins_along_e.
+            overlap_weights`) | "grid" (whole pixels summed along the pixel-grid direction
+            nearest to e, bins along that direction, :func:`.bins_along_e.grid_weights`;
+            the network reads the shift along it, the CoG across e gives the rest).
     """
 
     name = "ann"
-    _allowed = ("model", "out_of_domain", "bias", *pupil_cal.OPTION_DEFAULTS)
+    _allowed = ("model", "out_of_domain", "bias", "bins", *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
@@ -446,6 +451,7 @@ class ANN(Centroider):
         if options["out_of_domain"] not in ("refuse", "warn"):
             raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
         choice("bias", options.setdefault("bias", "auto"), ("auto", "pupil", "none"))
+        choice("bins", options.setdefault("bins", "overlap"), bins_along_e.PROJECTIONS)
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
@@ -477,10 +483,21 @@ class ANN(Centroider):
         if self.input_name not in inputs:
             raise ValueError(f"ann: model has no input {self.input_name!r} (inputs: {list(inputs)})")
         self.marginals = md["input"] == "marginals"
-        # a marginals model on a cartesian detector: bins along e, pixels split by overlap
+        # a marginals model on a cartesian detector: bins along e (pixels split by overlap)
+        # or along the grid direction nearest to e (option bins)
         self._bins = None
         self._window = None
-        if projectable:         # centred until the first reference places the windows
+        self._dir = None        # the bins' direction where it is not e ("grid")
+        if projectable and options["bins"] == "grid":
+            if md["bins_window"] != "centred":
+                raise ValueError(f"ann: bins 'grid' reads centred windows; {self.path.name} "
+                                 f"reads {md['bins_window']!r} ones")
+            start, w, self._dir = bins_along_e.grid_weights(self.layout.e, self.p)
+            self._centred = (start, w)
+            self._place_window(np.zeros(self.n, dtype=np.int32))
+            del self._centred
+            self._grid_q = bins_along_e.grid_tables(self._dir, *self._bins)   # the frame pass's
+        elif projectable:       # centred until the first reference places the windows
             self._centred = bins_along_e.overlap_weights(self.layout.e, self.p)
             self._place_window(np.zeros(self.n, dtype=np.int32))
             if md["bins_window"] == "centred":    # placed for good: no need of the exact split
@@ -604,6 +621,11 @@ class ANN(Centroider):
         if self._bins is None:
             return np.stack([along, across], axis=1).astype(np.float64)
         e = np.asarray(self.layout.e, dtype=np.float64)
+        if self._dir is not None:      # ``along`` is along d: s . d = along, s . v_e = across
+            d = self._dir
+            w = np.stack([-d[:, 1], d[:, 0]], axis=1)
+            cos = (d * e).sum(axis=1)[:, None]               # >= cos 22.5 deg
+            return (along[:, None] * e + across[:, None] * w) / cos
         v = np.stack([-e[:, 1], e[:, 0]], axis=1)
         return along[:, None] * e + across[:, None] * v
 
@@ -800,7 +822,10 @@ class ANN(Centroider):
         if kernels.fits(raw, self.sensor.frame_shape):     # one compiled pass
             if self.pupil.observe_frame(raw):
                 self._install_reference()
-            along, mom = kernels.block_bins(raw, kernels.origins(self), self.p, *self._bins_q)
+            if self._dir is not None:                       # whole-pixel sums, no split
+                along, mom = kernels.grid_bins(raw, kernels.origins(self), self.p, *self._grid_q)
+            else:
+                along, mom = kernels.block_bins(raw, kernels.origins(self), self.p, *self._bins_q)
             ok = mom[:, 0] > 0
             with np.errstate(divide="ignore", invalid="ignore"):
                 across = self._across_e((mom[:, 1:] - self.centre * mom[:, :1]) / mom[:, :1])
