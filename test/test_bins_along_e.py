@@ -290,3 +290,23 @@ def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_dir
     assert ann.describe()["options"]["bins"] == "grid"
     with pytest.raises(ValueError, match="bins"):
         options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "diagonal"})
+
+
+def test_a_model_trained_on_grid_sums_reads_them_by_itself(tmp_path):
+    """A model declaring lgs_wfs.bins_projection grid reads grid bins without the option
+    (bins = auto), as bins = grid makes an overlap-trained one do; bins = overlap
+    overrides it; a bad declaration is refused."""
+    sensor = Sensor(detector="cartesian", photons=1000.0)
+    grid = linear_marginal_model(tmp_path / "g.onnx", metadata={"lgs_wfs.bins_projection": "grid"})
+    plain = linear_marginal_model(tmp_path / "p.onnx")
+    pup = {"pupil_period": 3, "out_of_domain": "warn"}
+    f = frames(sensor, 1)[0]
+    by_itself = options.build("ann", sensor, {"model": str(grid), **pup})
+    told = options.build("ann", sensor, {"model": str(plain), "bins": "grid", **pup})
+    overlap = options.build("ann", sensor, {"model": str(grid), "bins": "overlap", **pup})
+    assert by_itself._dir is not None and overlap._dir is None
+    np.testing.assert_allclose(by_itself.centroid(f), told.centroid(f), atol=1e-9)
+    assert np.abs(overlap.centroid(f) - by_itself.centroid(f)).max() > 1e-3
+    bad = linear_marginal_model(tmp_path / "b.onnx", metadata={"lgs_wfs.bins_projection": "sideways"})
+    with pytest.raises(ValueError, match="bins_projection"):
+        options.build("ann", sensor, {"model": str(bad), **pup})

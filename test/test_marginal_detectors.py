@@ -122,3 +122,31 @@ def test_trained_on_both_runs_on_a_cartesian_sensor(tmp_path):
     assert c.describe()["domain"]["out_of_domain_subapertures"] == 0
     counts = np.random.default_rng(2).poisson(5.0, sensor.frame_shape).astype(np.uint16)
     assert np.isfinite(c.centroid(counts)).all()
+
+
+def test_grid_pairs_are_the_grid_sums_and_the_shift_along_their_direction():
+    """With projection "grid" the same draws are read through whole-pixel sums along the
+    pixel-grid direction d nearest to each e (the quantised split the frame pass uses) and
+    the target is t . d, not t . e; polar pairs do not change; reference windows and an
+    unknown projection are refused."""
+    grid = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian", projection="grid")
+    rng = np.random.default_rng(7)
+    r = rng.uniform(*refdata.MARGINAL_SPEC.radius_m, size=20)
+    ang = rng.uniform(0.0, 2 * np.pi, size=20)
+    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    t, ref, ph, counts = refdata._spots(rng, refdata.MARGINAL_SPEC, Sensor(), r, e)
+    start, w, d = bins_along_e.grid_weights(e, 16)
+    s8, _, wq = bins_along_e.quantised(start, w)
+    np.testing.assert_allclose(grid.marg, bins_along_e.project(counts.reshape(20, -1), s8, wq), rtol=1e-5)
+    np.testing.assert_allclose(grid.y[:, 0], (t * d).sum(axis=1), rtol=1e-5, atol=1e-6)
+    assert np.abs((t * d).sum(axis=1) - (t * e).sum(axis=1)).max() > 0.01
+    polar = refdata.marginal_pairs(np.random.default_rng(8), 5, detector="polar", projection="grid")
+    same = refdata.marginal_pairs(np.random.default_rng(8), 5, detector="polar")
+    np.testing.assert_array_equal(polar.marg, same.marg)
+    with pytest.raises(ValueError, match="centred"):
+        refdata.marginal_pairs(np.random.default_rng(7), 2, detector="cartesian", window="reference",
+                               projection="grid")
+    with pytest.raises(ValueError, match="projection"):
+        refdata.marginal_pairs(np.random.default_rng(7), 2, detector="cartesian", projection="pixel")
+    rec = recipes.RECIPES["ann_grid"]
+    assert rec.bins_projection == "grid" and recipes.RECIPES["ann_conv"].bins_projection == "overlap"

@@ -35,6 +35,11 @@ is accepted too):
                             (moved by whole pixels to its calibrated reference's light at
                             every refit, :func:`.bins_along_e.window_offsets`); a model
                             reads the windows it was trained on (3.6x worse in the other)
+``lgs_wfs.bins_projection`` a marginals model on a cartesian detector: "overlap" (default:
+                            each pixel split along e by its footprint) | "grid" (whole-pixel
+                            sums along the pixel-grid direction nearest to e, the shift read
+                            along that direction, :func:`.bins_along_e.grid_weights`); option
+                            ``bins`` overrides it
 ``lgs_wfs.hyper``           bool (default false): a marginals model whose reference sets
                             per-subaperture filters (``learning/hypertrain.py``): the graph's
                             tensors ``lgs_wfs.hyper_outputs`` (default ``["filters", "fbias"]``)
@@ -173,7 +178,7 @@ def read_metadata(meta_map: dict) -> dict:
           "conditioning_frame": "detector",
           "input_name": None, "training": None, "domain": None,
           "hyper": False, "hyper_outputs": ["filters", "fbias"], "hyper_trunk": None,
-          "bins_window": "centred"}
+          "bins_window": "centred", "bins_projection": "overlap"}
     md.update(raw)
     if "pixels" not in raw:
         raise ValueError("ann: model metadata lacks lgs_wfs.pixels")
@@ -182,7 +187,8 @@ def read_metadata(meta_map: dict) -> dict:
               ("output_frame", ("local", "detector", "block")),
               ("conditioning", ("none", "e", "e_r", "reference")),
               ("conditioning_frame", ("detector", "pixel")),
-              ("bins_window", bins_along_e.WINDOWS)]
+              ("bins_window", bins_along_e.WINDOWS),
+              ("bins_projection", bins_along_e.PROJECTIONS)]
     for key, allowed in checks:
         if md[key] not in allowed:
             raise ValueError(f"ann: metadata lgs_wfs.{key} must be one of {list(allowed)}, got {md[key]!r}")
@@ -434,11 +440,12 @@ class ANN(Centroider):
             whose reading of the noise-free reference is its mean reading under photon noise,
             "none" otherwise). Needs a reference-reading model; the option as run (pupil or
             none) is in ``describe()["options"]``.
-        bins: a column-sum model on a cartesian detector: "overlap" (default: each pixel
-            split over the 1 px bins along e by its footprint, :func:`.bins_along_e.
-            overlap_weights`) | "grid" (whole pixels summed along the pixel-grid direction
-            nearest to e, bins along that direction, :func:`.bins_along_e.grid_weights`;
-            the network reads the shift along it, the CoG across e gives the rest).
+        bins: a column-sum model on a cartesian detector: "auto" (default: what the model
+            was trained on, ``lgs_wfs.bins_projection``) | "overlap" (each pixel split over
+            the 1 px bins along e by its footprint, :func:`.bins_along_e.overlap_weights`) |
+            "grid" (whole pixels summed along the pixel-grid direction nearest to e, bins
+            along that direction, :func:`.bins_along_e.grid_weights`; the network reads
+            the shift along it, the CoG across e gives the rest).
     """
 
     name = "ann"
@@ -451,7 +458,7 @@ class ANN(Centroider):
         if options["out_of_domain"] not in ("refuse", "warn"):
             raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
         choice("bias", options.setdefault("bias", "auto"), ("auto", "pupil", "none"))
-        choice("bins", options.setdefault("bins", "overlap"), bins_along_e.PROJECTIONS)
+        choice("bins", options.setdefault("bins", "auto"), ("auto", *bins_along_e.PROJECTIONS))
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
@@ -488,7 +495,8 @@ class ANN(Centroider):
         self._bins = None
         self._window = None
         self._dir = None        # the bins' direction where it is not e ("grid")
-        if projectable and options["bins"] == "grid":
+        bins = md["bins_projection"] if options["bins"] == "auto" else options["bins"]
+        if projectable and bins == "grid":
             if md["bins_window"] != "centred":
                 raise ValueError(f"ann: bins 'grid' reads centred windows; {self.path.name} "
                                  f"reads {md['bins_window']!r} ones")

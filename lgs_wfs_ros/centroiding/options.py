@@ -196,11 +196,12 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                   "(pupil), or not (none); auto: pupil for the models that read column sums "
                   "along e (ann_conv, ann_hyper, ann_marg), none for the others.",
                   {"choices": ("auto", "pupil", "none")}),
-                 ("bins", "overlap", "How a cartesian block's light reaches a column-sum "
-                  "model's bins along e: each pixel split by its footprint along e (overlap), "
-                  "or whole pixels summed along the pixel-grid direction nearest to e, the "
-                  "network reading the shift along that direction (grid). Polar detectors: "
-                  "unused.", {"choices": ("overlap", "grid")}),
+                 ("bins", "auto", "How a cartesian block's light reaches a column-sum "
+                  "model's bins: each pixel split by its footprint along e (overlap), or "
+                  "whole pixels summed along the pixel-grid direction nearest to e, the "
+                  "network reading the shift along that direction (grid); auto: what the "
+                  "model was trained on. Polar detectors: unused.",
+                  {"choices": ("auto", "overlap", "grid")}),
                  *_PUPIL),
     "ml": _rows("ml", ("step_px", 0.25, "Grid step of the likelihood tables, pixels (a "
                        "parabola through the best grid point refines it).",

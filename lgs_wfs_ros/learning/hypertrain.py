@@ -489,21 +489,23 @@ def train(rec, target: Path, samples: int, seed: int, epochs: int, progress: boo
     t0 = time.perf_counter()
     spec = spec_of(rec, epochs, seed)
     dets = rec.detectors
-    win = rec.bins_window
-    data = margtrain.generate(samples, seed, progress=progress, detectors=dets, window=win)
+    win, proj = rec.bins_window, rec.bins_projection
+    data = margtrain.generate(samples, seed, progress=progress, detectors=dets, window=win,
+                              projection=proj)
     mon = margtrain.generate(min(20_000, max(2000, samples // 10)), margtrain.MONITOR_SEED + seed,
-                             progress=False, detectors=dets, window=win)
+                             progress=False, detectors=dets, window=win, projection=proj)
     gen_s = time.perf_counter() - t0
     log = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
     net, hist = fit(spec, data, mon, log=log, time_budget_s=time_budget_s)
     del data
     check = margtrain.generate(margtrain.CHECK_N, margtrain.CHECK_SEED, progress=False, detectors=dets,
-                               window=win)
+                               window=win, projection=proj)
     training = record(rec, spec, samples, gen_s, net, hist, _mae(net, _tensors(check)),
                       "fresh spots of the training prior (margtrain's check set)")
     model = build_model(net, spec, {"lgs_wfs.training": training,
                                     "lgs_wfs.domain": margtrain.domain(detectors=dets),
-                                    "lgs_wfs.bins_window": win}, rec.name,
+                                    "lgs_wfs.bins_window": win,
+                                    "lgs_wfs.bins_projection": proj}, rec.name,
                         detector="polar" if set(dets) == {"polar"} else "any")
     path = export.save(model, Path(target))
     return {"path": str(path), "training": training, "history": hist}

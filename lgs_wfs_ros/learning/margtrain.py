@@ -50,11 +50,13 @@ def features(marg: np.ndarray, refs: np.ndarray) -> np.ndarray:
 
 
 def generate(n: int, seed: int, batch: int = 4096, progress: bool = True,
-             detectors=("polar",), window: str = "centred") -> refdata.MarginalPairs:
+             detectors=("polar",), window: str = "centred",
+             projection: str = "overlap") -> refdata.MarginalPairs:
     """``n`` spots of :data:`.refdata.MARGINAL_SPEC` shared among ``detectors``
     (:func:`.refdata.split`); a detector's batch ``k`` comes from
     ``default_rng([seed, k, *refdata.STREAMS[d]])``,
-    polar spots first; cartesian bins through ``window`` (:data:`.refdata.WINDOWS`)."""
+    polar spots first; cartesian bins through ``window`` (:data:`.refdata.WINDOWS`) and
+    ``projection`` (overlap or grid, :func:`.refdata.marginal_pairs`)."""
     from tqdm.auto import tqdm
     parts = []
     with tqdm(total=n, desc="spots", unit="spot", disable=not progress, mininterval=5.0) as bar:
@@ -63,7 +65,8 @@ def generate(n: int, seed: int, batch: int = 4096, progress: bool = True,
             while done < count:
                 m = min(batch, count - done)
                 rng = np.random.default_rng([seed, k, *refdata.STREAMS[det]])
-                parts.append(refdata.marginal_pairs(rng, m, detector=det, window=window))
+                parts.append(refdata.marginal_pairs(rng, m, detector=det, window=window,
+                                                    projection=projection))
                 done, k = done + m, k + 1
                 bar.update(m)
     return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts])
@@ -124,11 +127,12 @@ def predict(path_or_model, pairs: refdata.MarginalPairs) -> np.ndarray:
 
 
 def check_error(path_or_model, n: int = CHECK_N, seed: int = CHECK_SEED,
-                detectors=("polar",), window: str = "centred") -> float:
+                detectors=("polar",), window: str = "centred", projection: str = "overlap") -> float:
     """Mean absolute error along e (px) on the fixed check spots (fresh draws of the prior,
     shared among ``detectors`` and binned through ``window`` as the model's training
     was)."""
-    pairs = generate(n, seed, progress=False, detectors=detectors, window=window)
+    pairs = generate(n, seed, progress=False, detectors=detectors, window=window,
+                     projection=projection)
     return float(np.abs(predict(path_or_model, pairs) - pairs.y).mean())
 
 

@@ -13,6 +13,7 @@ while still concentrating samples where turbulence puts them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 
 SIGMA_TRAIN_PX = 0.6
@@ -66,6 +67,9 @@ class Recipe:
             bins along e centred on it) or "reference" (moved to the stale reference's light,
             :data:`.refdata.WINDOWS`; tried for ``ann_conv`` on 2026-11-27 and not kept:
             docs/ann_ref.md "Windows moved to the light").
+        bins_projection: marginal recipes on cartesian spots: "overlap" (each pixel split
+            along e by its footprint) or "grid" (whole-pixel sums along the pixel-grid
+            direction nearest to e: the frame pass without a split, half the cost).
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -96,6 +100,7 @@ class Recipe:
     filters: int = 0
     hyper_conv: tuple = ()
     bins_window: str = "centred"
+    bins_projection: str = "overlap"
     shipped: bool = True
     note: str = ""
 
@@ -238,6 +243,14 @@ RECIPES["ann_conv"] = Recipe(
          "the pupil calibration, applied to the light in 1 px bins along e (polar: the column "
          "sums; cartesian, e at any angle: each pixel split by its overlap); every radius to "
          "35 m, 100-3000 photons")
+
+# ann_conv read through whole-pixel sums along the pixel-grid direction nearest to e on
+# cartesian pixels (no pixel split: the frame pass at half the cost); polar spots as ann_conv's
+RECIPES["ann_grid"] = dataclasses.replace(
+    RECIPES["ann_conv"], name="ann_grid", bins_projection="grid", shipped=False,
+    note="ann_conv's network and data, the cartesian spots read through whole-pixel sums along "
+         "the pixel-grid direction nearest to e (columns, rows or diagonals) and the shift "
+         "along that direction: the frame pass splits no pixel")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they

@@ -223,16 +223,24 @@ WINDOWS = bins_along_e.WINDOWS
 
 def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_SPEC,
                    sensor: Sensor = Sensor(), detector: str = "polar",
-                   window: str = "centred") -> MarginalPairs:
+                   window: str = "centred", projection: str = "overlap") -> MarginalPairs:
     """Draw ``n`` spots as :class:`MarginalPairs`: the prior, geometry and noise of
     :func:`pairs` (with ``spec``), each image and reference reduced to its light in 1 px
     bins along e. ``detector`` "polar": e along block x, the bins are the column sums (a
     polar spot is the outer product of its marginals); "cartesian": e at any angle, each
     pixel split over the bins by the overlap of its footprint
     (:func:`..centroiding.bins_along_e.overlap_weights`, what the centroider reads there),
-    the spot and its reference through the same window (``window``, :data:`WINDOWS`)."""
+    the spot and its reference through the same window (``window``, :data:`WINDOWS`); with
+    ``projection`` "grid", whole pixels summed along the pixel-grid direction ``d`` nearest
+    to e instead (:func:`..centroiding.bins_along_e.grid_weights`, centred windows), the
+    target then the shift along ``d``."""
     if window not in WINDOWS:
         raise ValueError(f"marginal_pairs: window must be one of {WINDOWS}, not {window!r}")
+    if projection not in bins_along_e.PROJECTIONS:
+        raise ValueError(f"marginal_pairs: projection must be one of {bins_along_e.PROJECTIONS}, "
+                         f"not {projection!r}")
+    if projection == "grid" and window != "centred":
+        raise ValueError("marginal_pairs: grid bins are read through centred windows")
     r = rng.uniform(*spec.radius_m, size=n)
     if detector == "polar":
         e = np.tile([1.0, 0.0], (n, 1))
@@ -241,8 +249,14 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     else:
         raise ValueError(f"marginal_pairs: detector must be polar or cartesian, not {detector!r}")
     t, ref, ph, counts = _spots(rng, spec, sensor, r, e)
+    along = e
     if detector == "polar":
         marg, refm = counts.sum(axis=1), ref.sum(axis=1)
+    elif projection == "grid":
+        start, w, along = bins_along_e.grid_weights(e, sensor.pixels)
+        start, _, w = bins_along_e.quantised(start, w)          # as the frame pass splits
+        marg = bins_along_e.project(counts.reshape(n, -1), start, w)
+        refm = bins_along_e.project(ref.reshape(n, -1), start, w)
     else:
         start, w = bins_along_e.overlap_weights(e, sensor.pixels)
         if window == "reference":
@@ -252,7 +266,7 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     tot = refm.sum(axis=1, keepdims=True)
     return MarginalPairs(np.asarray(marg, dtype=np.float32),
                          (refm / np.where(tot > 0, tot, np.inf)).astype(np.float32),
-                         (t * e).sum(axis=1, keepdims=True).astype(np.float32), r, ph)
+                         (t * along).sum(axis=1, keepdims=True).astype(np.float32), r, ph)
 
 
 __all__ = ["PriorSpec", "broad_profiles", "calibrated", "pairs", "Pairs", "marginal_pairs",
