@@ -109,10 +109,14 @@ class Recipe:
         if self.conditioning == "marginals":
             from .refdata import MARGINAL_SPEC as pr
             polar = set(self.detectors) == {"polar"}
+            cart = ("whole-pixel sums along the pixel-grid direction nearest to e on "
+                    "cartesian ones, the shift read along that direction)"
+                    if self.bins_projection == "grid" else
+                    "each pixel split by its overlap on cartesian ones" + (
+                        ", the window moved to the reference's light)"
+                        if self.bins_window == "reference" else ")"))
             bins = ("column sums" if polar else
-                    "light in 1 px bins along e (column sums on polar pixels, each pixel split "
-                    "by its overlap on cartesian ones" + (", the window moved to the "
-                    "reference's light)" if self.bins_window == "reference" else ")"))
+                    "light in 1 px bins along e (column sums on polar pixels, " + cart)
             form = (f"MLP {'-'.join(map(str, self.sizes))} tanh on a polar spot's column sums "
                     f"(along e): (sums / total - reference's, reference's, log10 total)"
                     ) if not self.filters else (
