@@ -248,9 +248,9 @@ def test_compiled_grid_bins_are_the_quantised_split_of_the_sums():
     frame = rng.integers(0, 4000, size=sensor.frame_shape).astype(np.uint16)
     start, w, d = bins_along_e.grid_weights(lay.e, P)
     s8, _, wq = bins_along_e.quantised(start, w)
-    code, tstart, tw = bins_along_e.grid_tables(d, s8, wq)
+    code, sums, shares = bins_along_e.grid_tables(d, s8, wq)
     assert set(code) == {0, 1, 2, 3}
-    bins, mom = kernels.grid_bins(frame, kernels.block_origins(lay), P, code, tstart, tw)
+    bins, mom = kernels.grid_bins(frame, kernels.block_origins(lay), P, code, sums, shares)
     flat = geometry.frame_to_stack(frame, lay).reshape(lay.n_valid, -1).astype(np.float64)
     np.testing.assert_allclose(bins, bins_along_e.project(flat, s8, wq), rtol=1e-5, atol=1e-3)
     y, x = np.indices((P, P))

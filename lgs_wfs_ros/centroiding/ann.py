@@ -628,14 +628,23 @@ class ANN(Centroider):
         each)."""
         if self._bins is None:
             return np.stack([along, across], axis=1).astype(np.float64)
-        e = np.asarray(self.layout.e, dtype=np.float64)
-        if self._dir is not None:      # ``along`` is along d: s . d = along, s . v_e = across
-            d = self._dir
-            w = np.stack([-d[:, 1], d[:, 0]], axis=1)
-            cos = (d * e).sum(axis=1)[:, None]               # >= cos 22.5 deg
-            return (along[:, None] * e + across[:, None] * w) / cos
-        v = np.stack([-e[:, 1], e[:, 0]], axis=1)
-        return along[:, None] * e + across[:, None] * v
+        a, b = self._solve_ab()
+        return along[:, None] * a + across[:, None] * b
+
+    def _solve_ab(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(a, b)`` ``(n, 2)`` each, made once: the shift is ``along a + across b``. Bins
+        along e: ``a = e``, ``b = v`` (e turned 90 deg). Bins along a grid direction ``d``
+        (``s . d = along``, ``s . v = across``): ``a = e / (d . e)``, ``b = w / (d . e)``
+        with ``w`` = ``d`` turned 90 deg (``d . e >= cos 22.5 deg``)."""
+        if "_ab" not in self.__dict__:
+            e = np.asarray(self.layout.e, dtype=np.float64)
+            if self._dir is None:
+                self._ab = (e, np.stack([-e[:, 1], e[:, 0]], axis=1))
+            else:
+                d = self._dir
+                cos = (d[:, 0] * e[:, 0] + d[:, 1] * e[:, 1])[:, None]
+                self._ab = (e / cos, np.stack([-d[:, 1], d[:, 0]], axis=1) / cos)
+        return self._ab
 
     def _row_cog(self, rows: np.ndarray) -> np.ndarray:
         """``(n,)`` CoG of the row sums ``rows (n, p)``, px from the block centre (block y of

@@ -163,7 +163,8 @@ def grid_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray, n
 
 def grid_code(d: np.ndarray) -> np.ndarray:
     """``(n,)`` int8: which whole-pixel sums give the bins along ``d`` (:func:`grid_direction`):
-    0 columns, 1 diagonals ``i + j``, 2 rows, 3 anti-diagonals ``i - j``."""
+    0 columns, 1 diagonals ``i + j``, 2 rows, 3 anti-diagonals ``j - i`` (row ``i``, column
+    ``j``)."""
     d = np.asarray(d, dtype=np.float64)
     diag = (np.abs(d[:, 0]) > 0.1) & (np.abs(d[:, 1]) > 0.1)
     return np.where(diag, np.where(d[:, 0] * d[:, 1] > 0, 1, 3),
@@ -173,20 +174,36 @@ def grid_code(d: np.ndarray) -> np.ndarray:
 def grid_tables(d: np.ndarray, start8: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tables of :func:`.kernels.grid_bins` from a split of :func:`grid_weights` (as
     :func:`quantised` gives it: ``start8 (n, p*p)``, ``wq (n, p*p, 3)``): ``(code (n,)
-    int8, tstart (n, 2p-1) int8, tw (n, 2p-1, 2) float32)``, the first bin and the two
-    shares of each whole-pixel sum (every pixel of a sum has the same split; a sum no pixel
-    feeds gets bin -2, nothing)."""
+    int8, sums (n, p, 3) int8, shares (n, p, 3) float32)``: for each bin the (at most
+    three) whole-pixel sums it takes a share of, and those shares (0 for an unused slot).
+    Every pixel of a sum has the same split, so the bins are those of the pixels' split."""
     n, pp = start8.shape
     p = int(round(pp ** 0.5))
     code = grid_code(d)
     y, x = np.indices((p, p))
-    index = np.stack([x, x + y, y, y - x + p - 1]).reshape(4, pp)[code]             # (n, pp)
-    tstart = np.full((n, 2 * p - 1), -2, dtype=np.int8)
-    tw = np.zeros((n, 2 * p - 1, 2), dtype=np.float32)
+    index = np.stack([x, x + y, y, x - y + p - 1]).reshape(4, pp)[code]             # (n, pp)
+    nr = 2 * p - 1
+    first = np.full((n, nr), -2, dtype=np.int64)          # each sum's first bin and shares
+    share = np.zeros((n, nr, 2))
     rows = np.arange(n)[:, None]
-    tstart[rows, index] = start8
-    tw[rows, index] = wq[..., :2]
-    return code, tstart, tw
+    first[rows, index] = start8
+    share[rows, index] = wq[..., :2]
+    sums = np.zeros((n, p, 3), dtype=np.int8)
+    shares = np.zeros((n, p, 3), dtype=np.float32)
+    used = np.zeros((n, p), dtype=np.int64)
+    for m in range(nr):                                   # sums in order: slots fill in order
+        for s in range(2):
+            q = first[:, m] + s
+            ok = (q >= 0) & (q < p) & (share[:, m, s] > 0)
+            b, qq = np.nonzero(ok)[0], q[ok]
+            slot = used[b, qq]
+            if (slot >= 3).any():
+                raise ValueError("grid_tables: a bin takes more than three sums")
+            sums[b, qq, slot] = m
+            shares[b, qq, slot] = share[b, m, s]
+            used[b, qq] += 1
+    assert 0 <= sums.min() and sums.max() < nr       # the compiled pass indexes with them
+    return code, sums, shares
 
 
 def quantised(start: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
