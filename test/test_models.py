@@ -108,7 +108,8 @@ def test_marginal_model_contract_and_check_error(name):
     assert ins == {"marginals": ["batch", 16], "reference": ["batch", 16]}
     check = meta["lgs_wfs.training"]["check"]
     got = margtrain.check_error(path, check["n"], check["seed"], dets,
-                                meta.get("lgs_wfs.bins_window", "centred"))
+                                meta.get("lgs_wfs.bins_window", "centred"),
+                                meta.get("lgs_wfs.bins_projection", "overlap"))
     assert got == pytest.approx(check["mean_err_px"], rel=1e-4)
 
 
