@@ -305,6 +305,8 @@ def test_a_model_trained_on_grid_sums_reads_them_by_itself(tmp_path):
     told = options.build("ann", sensor, {"model": str(plain), "bins": "grid", **pup})
     overlap = options.build("ann", sensor, {"model": str(grid), "bins": "overlap", **pup})
     assert by_itself._dir is not None and overlap._dir is None
+    assert by_itself.describe()["bins_projection"] == "grid"
+    assert overlap.describe()["bins_projection"] == "overlap"
     np.testing.assert_allclose(by_itself.centroid(f), told.centroid(f), atol=1e-9)
     assert np.abs(overlap.centroid(f) - by_itself.centroid(f)).max() > 1e-3
     bad = linear_marginal_model(tmp_path / "b.onnx", metadata={"lgs_wfs.bins_projection": "sideways"})

@@ -948,6 +948,7 @@ class ANN(Centroider):
         if self._bins is not None:       # a marginals model on a cartesian detector
             d["bins_window"] = {"kind": self.meta["bins_window"],
                                 "moved_subapertures": int(np.count_nonzero(self._window))}
+            d["bins_projection"] = "overlap" if self._dir is None else "grid"
         if self.pupil is not None:
             pupil_cal.describe_into(d, self.pupil)
         return d
