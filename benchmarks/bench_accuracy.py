@@ -78,7 +78,7 @@ ESTIMATORS = {
     "ann_conv": ("ann", {"model": "ann_conv"}),
     # the same network on cartesian pixels through whole-pixel sums along the pixel-grid
     # direction nearest to e (no pixel split; bins_along_e.grid_weights); polar: = ann_conv
-    "ann_grid": ("ann", {"model": "ann_conv", "bins": "grid"}),
+    "ann_conv_grid": ("ann", {"model": "ann_conv", "bins": "grid"}),
     # with the altitude tracker (off by default: it takes the atmosphere's focus too)
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),
