@@ -134,12 +134,12 @@ def run(quick: bool = False) -> list[dict]:
         ("corr (static model reference, gauss 3x3 peak)", "corr", {"reference": "model"}, "", reps),
         ("corr (default: pupil reference, gauss 3x3 peak; per-frame part)", "corr",
          {"pupil_period": 1000000}, "< 1 ms", reps),
-        ("ann (default: ann_conv on bins along e, cartesian detector; per-frame part)",
-         "ann", {"pupil_period": 1000000}, "< 1 ms", reps),
-        ("ann ann_ref (the cartesian default until 2026-11-27; per-frame part)",
+        ("ann (default: ann_grid on whole-pixel sums along the grid direction nearest to e, "
+         "cartesian detector; per-frame part)", "ann", {"pupil_period": 1000000}, "< 1 ms", reps),
+        ("ann ann_conv (each pixel split over bins along e; the cartesian default until "
+         "2026-11-27; per-frame part)", "ann", {"model": "ann_conv", "pupil_period": 1000000}, "", reps),
+        ("ann ann_ref (the cartesian default until 2026-11-26; per-frame part)",
          "ann", {"model": "ann_ref", "pupil_period": 1000000}, "", reps),
-        ("ann bins grid (ann_conv on whole-pixel sums along the grid direction nearest to e; "
-         "per-frame part)", "ann", {"bins": "grid", "pupil_period": 1000000}, "< 1 ms", reps),
     ]
     for label, name, opts, target, r in cases:
         c = make_centroider(name, sensor, **opts)
@@ -151,8 +151,8 @@ def run(quick: bool = False) -> list[dict]:
     for label, name, opts in (
             ("ann (default, cartesian; per-frame part) on a frame with background", "ann",
              {"pupil_period": 1000000}),
-            ("ann bins grid (per-frame part) on a frame with background", "ann",
-             {"bins": "grid", "pupil_period": 1000000}),
+            ("ann ann_conv (each pixel split; per-frame part) on a frame with background", "ann",
+             {"model": "ann_conv", "pupil_period": 1000000}),
             ("cmf (default; per-frame part) on a frame with background", "cmf", {"pupil_period": 1000000})):
         c = make_centroider(name, sensor, **opts)
         timings[label] = add(label, _time(lambda: c.centroid(bg_frame), reps), "< 1 ms",

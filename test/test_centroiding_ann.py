@@ -160,18 +160,20 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     assert resolve_model("tiny_cog.onnx") == d / "tiny_cog.onnx"
     c = make_centroider("ann", SENSOR, model="tiny_cog")
     assert c.path == d / "tiny_cog.onnx"
-    # the default model (ann_conv on both detectors) ships with the package, so it
-    # resolves by name and runs inside its domain on either detector ...
+    # the default models (ann_conv on polar pixels, ann_grid, read through whole-pixel
+    # grid sums, on cartesian ones) ship with the package, so they resolve by name and
+    # run inside their domain ...
     from lgs_wfs_ros.centroiding import ann
-    assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_conv"}
+    assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_grid"}
     for name in ann.DEFAULT_MODELS.values():
         assert resolve_model(name) == ann.model_dirs()[0] / f"{name}.onnx"
-    for det in ("polar", "cartesian"):
+    for det, name, bins in (("polar", "ann_conv", None), ("cartesian", "ann_grid", "grid")):
         c = make_centroider("ann", Sensor(detector=det))
-        assert c.model_name == "ann_conv" and c.describe()["domain"]["out_of_domain_subapertures"] == 0
-    # ... and where no directory holds it, the error says so (both paths always run)
+        assert c.model_name == name and c.describe()["domain"]["out_of_domain_subapertures"] == 0
+        assert c.describe().get("bins_projection") == bins
+    # ... and where no directory holds them, the error says so (both paths always run)
     monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
-    with pytest.raises(ValueError, match="'ann_conv' not found"):
+    with pytest.raises(ValueError, match="'ann_grid' not found"):
         make_centroider("ann", SENSOR)
     with pytest.raises(ValueError, match="'tiny_cog' not found"):
         resolve_model("tiny_cog")

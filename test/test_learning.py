@@ -197,7 +197,7 @@ def test_export_rejects_bad_layers():
 
 def test_recipes_are_complete():
     assert set(recipes.SHIPPED) == {"ann_1k", "ann_noiseless", "ann_diag", "ann_pupil", "ann_ref",
-                                    "ann_marg", "ann_hyper", "ann_conv"}
+                                    "ann_marg", "ann_hyper", "ann_conv", "ann_grid"}
     assert n_parameters(recipes.PAPER_SIZES) == 4146
     for name in recipes.SHIPPED:
         r = recipes.get(name)

@@ -93,7 +93,7 @@ from .base import Centroider, check_options, choice
 #: 1 px bins along e: the column sums on polar pixels, each pixel split by its overlap on
 #: cartesian ones; trained on both); ann_ref (the whole image beside its reference) was the
 #: cartesian default before
-DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_conv"}
+DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_grid"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
