@@ -88,11 +88,12 @@ from . import kernels
 from . import pupil as pupil_cal
 from .base import Centroider, check_options, choice
 
-#: the default model per detector (docs/ann_ref.md): ann_conv on both since 2026-11-27
-#: (filters its pupil-calibrated reference sets through convolutions, applied to the light in
-#: 1 px bins along e: the column sums on polar pixels, each pixel split by its overlap on
-#: cartesian ones; trained on both); ann_ref (the whole image beside its reference) was the
-#: cartesian default before
+#: the default model per detector (docs/ann_ref.md): filters its pupil-calibrated reference
+#: sets through convolutions, applied to the light in 1 px bins: ann_conv on polar pixels
+#: (the column sums, along e); ann_grid on cartesian ones since 2026-11-27 11:10 UTC (the
+#: same network trained on whole-pixel sums along the pixel-grid direction nearest to e:
+#: 0.87 ms a frame, where ann_conv's split of every pixel takes 1.4-2.4 ms); ann_ref (the
+#: whole image beside its reference) was the cartesian default before both
 DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_grid"}
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
@@ -427,7 +428,8 @@ class ANN(Centroider):
 
     Options:
         model: path or name (default: :data:`DEFAULT_MODELS` of the sensor's detector,
-            ``ann_conv`` on both), see :func:`resolve_model`.
+            ``ann_conv`` on polar pixels, ``ann_grid`` on cartesian ones), see
+            :func:`resolve_model`.
         pupil_period, pupil_time_constant_s, pupil_stride: the pupil calibration that gives
             a reference-reading model (``lgs_wfs.conditioning = "reference"``) its
             references, as cmf's pupil reference (:mod:`.pupil`); unused by other models.
