@@ -16,6 +16,17 @@ def bins_cog(a):
     return (a * k).sum(axis=1) / np.where(tot > 0, tot, np.nan)
 
 
+def rendered_draws(seed, n):
+    """``(e, t, ref, photons, counts)``: the cartesian draws ``marginal_pairs`` makes from
+    ``default_rng(seed)``, rendered, before any projection."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(*refdata.MARGINAL_SPEC.radius_m, size=n)
+    ang = rng.uniform(0.0, 2 * np.pi, size=n)
+    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    t, ref, ph, counts = refdata._spots(rng, refdata.MARGINAL_SPEC, Sensor(), r, e)
+    return e, t, ref, ph, counts
+
+
 def test_cartesian_spots_are_read_along_their_e():
     """On cartesian pixels the bins follow each spot's own e: the bins' CoG less the
     reference's follows the shift along e (with the sign of e), and the bins are the
@@ -36,11 +47,7 @@ def test_cartesian_pairs_project_the_rendered_spot():
     and the shift is t . e."""
     centred = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian")
     pairs = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian", window="reference")
-    rng = np.random.default_rng(7)
-    r = rng.uniform(*refdata.MARGINAL_SPEC.radius_m, size=20)
-    ang = rng.uniform(0.0, 2 * np.pi, size=20)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    t, ref, ph, counts = refdata._spots(rng, refdata.MARGINAL_SPEC, Sensor(), r, e)
+    e, t, ref, ph, counts = rendered_draws(7, 20)
     start, w = bins_along_e.overlap_weights(e, 16)
     np.testing.assert_allclose(centred.marg, bins_along_e.project(counts.reshape(20, -1), start, w), rtol=1e-5)
     start = bins_along_e.moved(start, bins_along_e.window_offsets(ref.reshape(20, -1), e))
@@ -130,11 +137,7 @@ def test_grid_pairs_are_the_grid_sums_and_the_shift_along_their_direction():
     the target is t . d, not t . e; polar pairs do not change; reference windows and an
     unknown projection are refused."""
     grid = refdata.marginal_pairs(np.random.default_rng(7), 20, detector="cartesian", projection="grid")
-    rng = np.random.default_rng(7)
-    r = rng.uniform(*refdata.MARGINAL_SPEC.radius_m, size=20)
-    ang = rng.uniform(0.0, 2 * np.pi, size=20)
-    e = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    t, ref, ph, counts = refdata._spots(rng, refdata.MARGINAL_SPEC, Sensor(), r, e)
+    e, t, ref, ph, counts = rendered_draws(7, 20)
     start, w, d = bins_along_e.grid_weights(e, 16)
     s8, _, wq = bins_along_e.quantised(start, w)
     np.testing.assert_allclose(grid.marg, bins_along_e.project(counts.reshape(20, -1), s8, wq), rtol=1e-5)
