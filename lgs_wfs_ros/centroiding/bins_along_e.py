@@ -24,7 +24,7 @@ bin of their centre lose 2-6 %. They share pixels, so they are correlated, not P
 Splitting every pixel costs a compiled frame pass three scattered additions a pixel
 (~0.9 ms a full frame, ~1.9 ms with sky background). :func:`grid_weights` splits none:
 whole pixels summed along the pixel-grid direction ``d`` nearest to ``e`` (columns, rows,
-diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread over the 1 px
+diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread by its pixels' footprint over the 1 px
 bins along ``d``; the network reads the shift along ``d`` and the CoG across ``e`` gives
 the rest (``ann``'s option ``bins``, a model's ``lgs_wfs.bins_projection``).
 """
@@ -129,6 +129,10 @@ def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray
 #: e, then 1 px bins along that direction: :func:`grid_weights`)
 PROJECTIONS = ("overlap", "grid")
 
+#: how many whole-pixel sums a bin along d can take a share of (:func:`grid_tables`): sums
+#: 1 / sqrt 2 px apart whose footprints are sqrt 2 px wide reach a 1 px bin from 2.4 px
+GRID_SLOTS = 4
+
 #: the four pixel-grid directions, block axes: columns, diagonals, rows, anti-diagonals
 GRID_DIRECTIONS = np.array([(1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (1.0, -1.0)]) / np.array(
     [1.0, np.sqrt(2.0), 1.0, np.sqrt(2.0)])[:, None]
@@ -144,28 +148,20 @@ def grid_direction(e_pixel: np.ndarray) -> np.ndarray:
 
 
 def grid_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bins along the pixel-grid direction ``d`` nearest to ``e``: whole pixels summed along
-    ``d`` (column or row sums; on a diagonal the sums of ``i + j`` or ``i - j``, bins
-    1 / sqrt 2 px wide), each such sum then split over the 1 px bins ``[k - p/2,
-    k - p/2 + 1)`` along ``d`` by its overlap (a diagonal sum touches at most two; a column
-    sum is a bin). No pixel is split on its own: a compiled pass makes these with
-    whole-row additions. They keep 98-99 % of the block's information along e
-    (``benchmarks/projection_information.py``, the shift across e known).
+    """Bins along the pixel-grid direction ``d`` nearest to ``e``: the overlap split of
+    :func:`overlap_weights` along ``d`` instead of ``e``. Every pixel of one whole-pixel sum
+    along the grid (a column or row sum, box footprint 1 px wide; a diagonal ``i + j`` or
+    ``i - j``, triangle footprint sqrt 2 px wide, sums 1 / sqrt 2 px apart) then has the
+    same split, so a compiled pass makes these bins from whole-row additions and splits no
+    pixel on its own (:func:`grid_tables`). They keep 98-99 % of the block's information
+    along e (``benchmarks/projection_information.py``, the shift across e known).
 
     Returns:
         ``(start, w, d)``: as :func:`overlap_weights` for the bins along ``d``, and ``d
         (n, 2)`` (:func:`grid_direction`).
     """
     d = grid_direction(e_pixel)
-    u0 = _along(d, p)                                                                # (n, pp)
-    diagonal = (np.abs(d[:, 0]) > 0.1) & (np.abs(d[:, 1]) > 0.1)
-    a = np.where(diagonal, np.sqrt(0.5), 1.0)[:, None, None]    # a sum's width along d
-    half = 0.5 * a[:, :, 0]
-    start = np.floor(u0 - half + p / 2 + 1e-9).astype(np.int64)
-    k = start[..., None] + np.arange(SPAN)
-    lo = k - p / 2 - u0[..., None]
-    w = _footprint_cdf(lo + 1.0, a, np.zeros_like(a)) - _footprint_cdf(lo, a, np.zeros_like(a))
-    return start.astype(np.int32), w.astype(np.float32), d
+    return (*overlap_weights(d, p), d)
 
 
 def grid_code(d: np.ndarray) -> np.ndarray:
@@ -191,21 +187,21 @@ def grid_tables(d: np.ndarray, start8: np.ndarray, wq: np.ndarray) -> tuple[np.n
     index = np.stack([x, x + y, y, x - y + p - 1]).reshape(4, pp)[code]             # (n, pp)
     nr = 2 * p - 1
     first = np.full((n, nr), -2, dtype=np.int64)          # each sum's first bin and shares
-    share = np.zeros((n, nr, 2))
+    share = np.zeros((n, nr, SPAN))
     rows = np.arange(n)[:, None]
     first[rows, index] = start8
-    share[rows, index] = wq[..., :2]
-    sums = np.zeros((n, p, 3), dtype=np.int8)
-    shares = np.zeros((n, p, 3), dtype=np.float32)
+    share[rows, index] = wq
+    sums = np.zeros((n, p, GRID_SLOTS), dtype=np.int8)
+    shares = np.zeros((n, p, GRID_SLOTS), dtype=np.float32)
     used = np.zeros((n, p), dtype=np.int64)
     for m in range(nr):                                   # sums in order: slots fill in order
-        for s in range(2):
+        for s in range(SPAN):
             q = first[:, m] + s
             ok = (q >= 0) & (q < p) & (share[:, m, s] > 0)
             b, qq = np.nonzero(ok)[0], q[ok]
             slot = used[b, qq]
-            if (slot >= 3).any():
-                raise ValueError("grid_tables: a bin takes more than three sums")
+            if (slot >= GRID_SLOTS).any():
+                raise ValueError(f"grid_tables: a bin takes more than {GRID_SLOTS} sums")
             sums[b, qq, slot] = m
             shares[b, qq, slot] = share[b, m, s]
             used[b, qq] += 1
@@ -253,6 +249,6 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["GRID_DIRECTIONS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code", "grid_direction",
+__all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code", "grid_direction",
            "grid_tables", "grid_weights",
            "moved", "overlap_weights", "project", "quantised", "window_offsets"]

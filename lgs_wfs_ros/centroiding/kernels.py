@@ -369,63 +369,53 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
 def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
     # bins (n, p) float32 along the pixel-grid direction of each block (code: 0 columns,
     # 1 diagonals i + j, 2 rows, 3 anti-diagonals j - i + p - 1): whole pixels summed into
-    # raw (2p,: 2p - 1 sums and a zero), then each bin the shares[b, q] of sums[b, q] (three slots; a gather,
-    # no scattered additions waiting on one another); moments (n, 3) float64: total, sum
-    # of x, sum of y (pixel indices from 0). Column and row sums as block_marginals makes
-    # them; a diagonal's through a skewed copy (row i stored i places on, p - 1 - i for
-    # anti-diagonals) whose column sums are the diagonal sums: each addition at the same
-    # place every row, not at overlapping places that stall one another
+    # raw (2p,: 2p - 1 sums and a zero), then each bin the shares[b, q] of sums[b, q] (four
+    # slots, unrolled: a loop over them costs 15 %; a gather, no scattered additions
+    # waiting on one another); moments (n, 3) float64: total, sum of x, sum of y (pixel
+    # indices from 0). Column and row sums as block_marginals makes them; a diagonal's
+    # through a skewed copy (row i stored i places on, p - 1 - i for anti-diagonals) whose
+    # column sums are the diagonal sums: each addition at the same place every row, not at
+    # overlapping places that stall one another
     n = origins.shape[0]
-    nr = 2 * p - 1
     wk = 2 * p
     # one skewed copy per kind of diagonal: outside each row's span zero for good
     skews = np.zeros((2, p * wk), dtype=np.float32)
     col = np.zeros(p, dtype=np.int32)
+    marg = np.empty((2, p), dtype=np.float32)
+    no_acc = np.zeros((0, 2, 1))
     for b in range(n):
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         k = code[b]
-        for j in range(p):
-            col[j] = 0
-        ts = 0
+        moments[b, 0] = _block_sums(frame, r0, c0, p, col, marg, no_acc, b)
+        tx = 0                                       # integer chains: no float latency
         ty = 0
-        for i in range(p):
-            row = frame[r0 + i, c0:c0 + p]
-            rs = np.int32(0)
+        for j in range(p):
+            tx += col[j] * j
+            ty += np.int32(marg[1, j]) * j
+        moments[b, 1] = tx
+        moments[b, 2] = ty
+        if k == 0 or k == 2:                         # columns or rows
             for j in range(p):
-                v = np.int32(row[j])
-                col[j] += v
-                rs += v
-            ts += rs
-            ty += rs * i
-            raw[i] = np.float32(rs)                  # rows (overwritten for the others)
-        skew = skews[0] if k == 1 else skews[1]
-        if k == 1 or k == 3:                         # the block again, from the cache
+                raw[j] = marg[k // 2, j]
+        else:                                        # the block again, from the cache
+            skew = skews[0] if k == 1 else skews[1]
             for i in range(p):
                 row = frame[r0 + i, c0:c0 + p]
                 at = i * wk + (i if k == 1 else p - 1 - i)
                 dst = skew[at:at + p]
                 for j in range(p):
                     dst[j] = np.float32(row[j])
-        tx = 0
-        for j in range(p):
-            tx += col[j] * j
-        moments[b, 0] = ts
-        moments[b, 1] = tx
-        moments[b, 2] = ty
-        if k == 0:
-            for j in range(p):
-                raw[j] = np.float32(col[j])
-        elif k == 1 or k == 3:                       # 2p columns (the last one zero): no
-            for m in range(wk):                      # remainder loop after the vector one
-                raw[m] = 0.0
+            for m in range(wk):                      # 2p columns (the last one zero): no
+                raw[m] = 0.0                         # remainder loop after the vector one
             for i in range(p):
                 srow = skew[i * wk:(i + 1) * wk]
                 for m in range(wk):
                     raw[m] += srow[m]
         for q in range(p):
-            bins[b, q] = (raw[sums[b, q, 0]] * shares[b, q, 0] + raw[sums[b, q, 1]] * shares[b, q, 1]
-                          + raw[sums[b, q, 2]] * shares[b, q, 2])
+            s = sums[b, q]
+            w = shares[b, q]
+            bins[b, q] = raw[s[0]] * w[0] + raw[s[1]] * w[1] + raw[s[2]] * w[2] + raw[s[3]] * w[3]
 
 
 def _ml_line_impl(mg, lg, j, base, tot_norm):
@@ -917,12 +907,12 @@ def grid_bins(frame: np.ndarray, origins: np.ndarray, p: int, code: np.ndarray,
     """``(bins (n, p) float32, moments (n, 3) float64)`` of each valid block of an integer
     frame: its light in 1 px bins along the pixel-grid direction nearest to its e (whole
     pixels summed along columns, rows, diagonals or anti-diagonals, each bin then a
-    weighted sum of at most three of those sums: the tables of
-    :func:`.bins_along_e.grid_tables`, ``code (n,)`` int8, ``sums (n, p, 3)`` int8,
-    ``shares (n, p, 3)`` float32), and its total, sum of x and sum of y (pixel indices from
+    weighted sum of at most four of those sums: the tables of
+    :func:`.bins_along_e.grid_tables`, ``code (n,)`` int8, ``sums (n, p, 4)`` int8,
+    ``shares (n, p, 4)`` float32), and its total, sum of x and sum of y (pixel indices from
     0). No pixel is split on its own: its cost does not grow with sky background."""
     n = origins.shape[0]
-    if code.shape != (n,) or sums.shape != (n, p, 3) or shares.shape != (n, p, 3):
+    if code.shape != (n,) or sums.shape != (n, p, 4) or shares.shape != (n, p, 4):
         raise ValueError("grid_bins: code, sums and shares must be bins_along_e.grid_tables of the n blocks")
     bins = np.empty((n, p), dtype=np.float32)
     moments = np.empty((n, 3))
@@ -1085,7 +1075,7 @@ def warm_up() -> None:
         block_marginals(f, o, 4, np.zeros((1, 2, 4)))
         block_marginals(f, o, 4)
         block_bins(f, o, 4, np.zeros((1, 16), np.int8), np.zeros((1, 16, 2), np.uint8))
-        grid_bins(f, o, 4, np.zeros(1, np.int8), np.zeros((1, 4, 3), np.int8), np.zeros((1, 4, 3), np.float32))
+        grid_bins(f, o, 4, np.zeros(1, np.int8), np.zeros((1, 4, 4), np.int8), np.zeros((1, 4, 4), np.float32))
         corr_peak(f, o, 4, corr_rows(np.zeros((1, 4, 4))), np.zeros((1, 2)))
         add_counts(np.zeros(f.shape, np.uint32), f)
         block_rows(f, o, 4)
