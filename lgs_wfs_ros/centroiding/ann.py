@@ -551,6 +551,8 @@ class ANN(Centroider):
         if self.marginals:
             kernels.warm_up()
         if self.pupil is not None:
+            if self._bins is not None:     # the solve's CoG response, off the frame path too
+                self.pupil.want_response = True
             self._install_reference()
             if self._refit is None:                     # the reference's code, one row each
                 _check_width(inputs[self.cond[0]], self.cond[1].shape[1], "conditioning input", self.n)
@@ -582,6 +584,7 @@ class ANN(Centroider):
         if self._bins is not None and self.meta["bins_window"] == "reference":
             ref = self.pupil.reference_image().reshape(self.n, -1)
             self._place_window(bins_along_e.window_offsets(ref, self.layout.e))
+        self.__dict__.pop("_ab", None)          # the solve follows the references' response
         self.cond = (self.cond[0], self._reference_code())
         self.__dict__.pop("_cond_rows", None)
         self._offset = self._reference_offset()
@@ -634,18 +637,29 @@ class ANN(Centroider):
         return along[:, None] * a + across[:, None] * b
 
     def _solve_ab(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(a, b)`` ``(n, 2)`` each, made once: the shift is ``along a + across b``. Bins
-        along e: ``a = e``, ``b = v`` (e turned 90 deg). Bins along a grid direction ``d``
-        (``s . d = along``, ``s . v = across``): ``a = e / (d . e)``, ``b = w / (d . e)``
-        with ``w`` = ``d`` turned 90 deg (``d . e >= cos 22.5 deg``)."""
+        """``(a, b)`` ``(n, 2)`` each, made once a refit: the shift is ``along a + across b``.
+
+        The network reads the shift along its bins' direction ``u`` (``e``, or the grid
+        direction ``d``), the CoG across e reads ``v^T J s``, with ``J`` the calibrated CoG's
+        response at zero shift (``pupil.cog_response``): where the field's edge cuts a spot
+        on a cartesian block the cut moves with the shift along e and pulls the CoG across e
+        (the identity elsewhere). ``(a, b)`` are the columns of ``[u; v^T J]^-1``; where
+        that matrix is far from the ideal ``[u; v]`` (determinant below 0.3, ideal at least
+        cos 22.5 deg) or not finite, ``J = I``."""
         if "_ab" not in self.__dict__:
             e = np.asarray(self.layout.e, dtype=np.float64)
-            if self._dir is None:
-                self._ab = (e, np.stack([-e[:, 1], e[:, 0]], axis=1))
-            else:
-                d = self._dir
-                cos = (d[:, 0] * e[:, 0] + d[:, 1] * e[:, 1])[:, None]
-                self._ab = (e / cos, np.stack([-d[:, 1], d[:, 0]], axis=1) / cos)
+            v = np.stack([-e[:, 1], e[:, 0]], axis=1)
+            u = e if self._dir is None else self._dir
+            ideal = np.stack([u, v], axis=1)                                     # (n, 2, 2)
+            m = ideal.copy()
+            if self.pupil is not None:
+                jac = self.pupil.cog_response().forward(np.zeros((self.n, 2)))[1]
+                m[:, 1] = np.einsum("ni,nij->nj", v, jac)
+                det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+                bad = ~(np.isfinite(det) & (np.abs(det) > 0.3))
+                m[bad] = ideal[bad]
+            inv = np.linalg.inv(m)
+            self._ab = (inv[:, :, 0], inv[:, :, 1])
         return self._ab
 
     def _row_cog(self, rows: np.ndarray) -> np.ndarray:
