@@ -24,9 +24,9 @@ bin of their centre lose 2-6 %. They share pixels, so they are correlated, not P
 Splitting every pixel costs a compiled frame pass three scattered additions a pixel
 (~0.9 ms a full frame, ~1.9 ms with sky background). :func:`grid_weights` splits none:
 whole pixels summed along the pixel-grid direction ``d`` nearest to ``e`` (columns, rows,
-diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread by its pixels' footprint over the 1 px
-bins along ``d``; the network reads the shift along ``d`` and the CoG across ``e`` gives
-the rest (``ann``'s option ``bins``, a model's ``lgs_wfs.bins_projection``).
+diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread by its
+pixels' footprint over the 1 px bins along ``d``; the network reads the shift along ``d``
+and the CoG across ``e`` gives the rest (``ann``'s option ``bins``, a model's ``lgs_wfs.bins_projection``).
 """
 
 from __future__ import annotations
@@ -249,6 +249,5 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code", "grid_direction",
-           "grid_tables", "grid_weights",
-           "moved", "overlap_weights", "project", "quantised", "window_offsets"]
+__all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code",
+           "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project", "quantised", "window_offsets"]
