@@ -26,7 +26,8 @@ Splitting every pixel costs a compiled frame pass three scattered additions a pi
 whole pixels summed along the pixel-grid direction ``d`` nearest to ``e`` (columns, rows,
 diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread by its
 pixels' footprint over the 1 px bins along ``d``; the network reads the shift along ``d``
-and the CoG across ``e`` gives the rest (``ann``'s option ``bins``, a model's ``lgs_wfs.bins_projection``).
+and the CoG across ``e`` gives the rest (``ann``'s option ``bins``, a model's
+``lgs_wfs.bins_projection``).
 """
 
 from __future__ import annotations
@@ -250,4 +251,5 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code",
-           "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project", "quantised", "window_offsets"]
+           "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project",
+           "quantised", "window_offsets"]
