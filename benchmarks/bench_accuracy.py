@@ -82,6 +82,10 @@ ESTIMATORS = {
     # trained on those sums (its cartesian spots; polar ones as ann_conv's): the cartesian
     # default since 2026-11-27
     "ann_grid": ("ann", {"model": "ann_grid"}),
+    # each block read against the reference moved to the nearest quarter pixel of its
+    # calibrated CoG along the bins (option recentre; docs/ann_ref.md "Moved references")
+    "ann_conv_rc": ("ann", {"model": "ann_conv", "recentre": True}),
+    "ann_grid_rc": ("ann", {"model": "ann_grid", "recentre": True}),
     # with the altitude tracker (off by default: it takes the atmosphere's focus too)
     "ml_alt": ("ml", {"pupil_altitude_s": ALTITUDE_S}),
     "cmf_alt": ("cmf", {"pupil_altitude_s": ALTITUDE_S}),

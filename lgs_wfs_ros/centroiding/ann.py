@@ -95,6 +95,10 @@ from .base import Centroider, check_options, choice
 #: 0.87 ms a frame, where ann_conv's split of every pixel takes 1.4-2.4 ms); ann_ref (the
 #: whole image beside its reference) was the cartesian default before both
 DEFAULT_MODELS = {"polar": "ann_conv", "cartesian": "ann_grid"}
+
+#: option recentre: filter sets a block, from the reference moved along the bins by
+#: ``(k - RECENTRE_SETS // 2) RECENTRE_STEP_PX`` px
+RECENTRE_SETS, RECENTRE_STEP_PX = 5, 0.25
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
 
@@ -448,10 +452,16 @@ class ANN(Centroider):
             "grid" (whole pixels summed along the pixel-grid direction nearest to e, bins
             along that direction, :func:`.bins_along_e.grid_weights`; the network reads
             the shift along it, the CoG across e gives the rest).
+        recentre: a filters model (``ann_conv``, ``ann_grid``): at every refit also make
+            the filters of the reference moved along the bins by ``-0.5 .. +0.5`` px in steps
+            of :data:`RECENTRE_STEP_PX` (:data:`RECENTRE_SETS` sets); each block is read
+            against the one nearest its CoG along the bins less the reference's, less the
+            network's reading of that moved reference, plus the move (``False``: the
+            reference alone, the default).
     """
 
     name = "ann"
-    _allowed = ("model", "out_of_domain", "bias", "bins", *pupil_cal.OPTION_DEFAULTS)
+    _allowed = ("model", "out_of_domain", "bias", "bins", "recentre", *pupil_cal.OPTION_DEFAULTS)
 
     def __init__(self, sensor, **options):
         check_options(self.name, options, self._allowed)
@@ -461,6 +471,8 @@ class ANN(Centroider):
             raise ValueError(f"ann: out_of_domain must be 'refuse' or 'warn', got {options['out_of_domain']!r}")
         choice("bias", options.setdefault("bias", "auto"), ("auto", "pupil", "none"))
         choice("bins", options.setdefault("bins", "auto"), ("auto", *bins_along_e.PROJECTIONS))
+        if not isinstance(options.setdefault("recentre", False), (bool, np.bool_)):
+            raise ValueError(f"ann: recentre must be true or false, got {options['recentre']!r}")
         super().__init__(sensor, **options)
         self.path = resolve_model(options["model"])
         self.session = open_session(self.path)
@@ -543,6 +555,11 @@ class ANN(Centroider):
         self.domain = self._check_domain(options["out_of_domain"])
         self._debias = self._bias_option(options["bias"])
         self.options["bias"] = "pupil" if self._debias else "none"
+        self._recentre = bool(options["recentre"])
+        self._moved = None
+        if self._recentre and not (self.marginals and self._trunk is not None):
+            raise ValueError(f"ann: recentre needs a model whose filters the reference sets, on "
+                             f"bins along e (ann_conv, ann_grid); {self.path.name} is not one")
         self._sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
         self._ones = np.ones(self.p * self.p, dtype=np.float32)
         self.folded = None
@@ -587,7 +604,44 @@ class ANN(Centroider):
         self.__dict__.pop("_ab", None)          # the solve follows the references' response
         self.cond = (self.cond[0], self._reference_code())
         self.__dict__.pop("_cond_rows", None)
+        if self._recentre:
+            self._moved = None
+            self._moved = self._moved_sets()
         self._offset = self._reference_offset()
+
+    def _moved_sets(self) -> tuple:
+        """``(filters (n, S, K, p), fbias (n, S, K), less (n, S), cbias (n,))`` of option
+        ``recentre``: set ``k`` from the calibrated reference moved by ``shift_k`` px along
+        the bins (``u``: e, or the grid direction), ``less`` what a reading through set
+        ``k`` loses (the network's raw reading of that moved reference when ``bias`` is
+        pupil, less ``shift_k``, in raw output units), ``cbias`` the CoG along the bins of
+        the reference, px."""
+        shifts = (np.arange(RECENTRE_SETS) - RECENTRE_SETS // 2) * RECENTRE_STEP_PX
+        u = np.tile([1.0, 0.0], (self.n, 1)) if self._bins is None else (
+            self.layout.e if self._dir is None else self._dir)
+        names = self.meta["hyper_outputs"]
+        fs, bs, less = [], [], []
+        pos = np.arange(self.p) - self.centre
+        for t in shifts:
+            along = self._along(self.pupil.image_at(t * np.asarray(u, dtype=np.float64)))
+            tot = along.sum(axis=1, keepdims=True, dtype=np.float64)
+            ref = np.where(tot > 0, along / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
+            f, b = self._refit.run(names, {self.meta["conditioning_input"]: np.ascontiguousarray(ref)})
+            fs.append(f)
+            bs.append(b)
+            if t == 0:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    cbias = np.nan_to_num((along @ pos) / tot[:, 0])
+            if self._debias:
+                z, safe = kernels.hyper_contract(along, f, b)
+                names_t = self.meta["hyper_trunk"]
+                raw = self._trunk.run(None, {names_t["z"]: z, names_t["total"]: safe})[0][:, 0]
+            else:
+                raw = np.zeros(self.n)
+            less.append(np.nan_to_num(raw) - t / self.meta["output_scale"])
+        return (np.ascontiguousarray(np.stack(fs, axis=1), dtype=np.float32),
+                np.ascontiguousarray(np.stack(bs, axis=1), dtype=np.float32),
+                np.stack(less, axis=1), cbias)
 
     def _reference_offset(self) -> np.ndarray | None:
         """``(n, 2)`` block axes, px, subtracted from every reading, or None: with ``bias``
@@ -878,10 +932,16 @@ class ANN(Centroider):
         float32 (filters in one compiled pass and the trunk in onnxruntime, when the model
         declares its trunk)."""
         if self._trunk is not None:
-            f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
-            z, safe = kernels.hyper_contract(x, f, b)
             names = self.meta["hyper_trunk"]
-            out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
+            if self._moved is not None:                 # option recentre
+                f, b, less, cbias = self._moved
+                z, safe, k = kernels.hyper_contract_moved(x, f, b, cbias, RECENTRE_STEP_PX)
+                out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
+                out = out - less[np.arange(self.n), k][:, None]
+            else:
+                f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
+                z, safe = kernels.hyper_contract(x, f, b)
+                out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
         else:
             feed = {self.input_name: x}
             if self._refit is not None:

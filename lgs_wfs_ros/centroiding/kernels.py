@@ -286,22 +286,34 @@ def _block_sums_impl(frame, r0, c0, p, col, dst, acc, b):
     return tot
 
 
-def _hyper_contract_impl(x, filters, fbias, z, safe):
-    # x (n, p) float32 marginals; filters (n, K, p), fbias (n, K) float32; out z (n, K), safe (n, 1)
-    n, k, p = filters.shape
+def _hyper_contract_impl(x, filters, fbias, pos, cbias, step, z, safe, chosen):
+    # x (n, p) float32 marginals; filters (n, S, K, p), fbias (n, S, K) float32; out z (n, K),
+    # safe (n, 1), chosen (n,) int64: the set S // 2 + round((CoG(x) - cbias) / step), clipped
+    # (S = 1: set 0; the CoG over positions pos (p,))
+    n, ns, k, p = filters.shape
+    half = ns // 2
     for b in range(n):
         tot = np.float32(0.0)
+        mom = np.float32(0.0)
         for j in range(p):
             tot += x[b, j]
+            mom += x[b, j] * pos[j]
         s = tot if tot > 1.0 else np.float32(1.0)
         if tot != tot:                       # NaN row: NaN out
             s = tot
         safe[b, 0] = s
+        c = half
+        if ns > 1 and tot > 0:
+            t = (mom / tot - cbias[b]) / step
+            if t == t:                       # not NaN
+                t = min(max(t, -half - 1.0), half + 1.0)
+                c = min(max(half + int(np.floor(t + 0.5)), 0), ns - 1)
+        chosen[b] = c
         for q in range(k):
             acc = np.float32(0.0)
             for j in range(p):
-                acc += filters[b, q, j] * x[b, j]
-            z[b, q] = acc / s + fbias[b, q]
+                acc += filters[b, c, q, j] * x[b, j]
+            z[b, q] = acc / s + fbias[b, c, q]
 
 
 def _add_counts_impl(acc, counts):
@@ -927,21 +939,46 @@ def hyper_contract(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray) -> tup
     own filters, ``z = filters (x / safe) + fbias`` with ``safe = max(sum x, 1)`` (NaN rows
     stay NaN): the first layer of a hyper network (``learning/hypertrain.py``), one pass
     instead of onnxruntime's per-block products. ``filters (n, K, p)``, ``fbias (n, K)``."""
+    filters = np.asarray(filters)
+    fbias = np.asarray(fbias)
+    z, safe, _ = hyper_contract_moved(x, filters[:, None], fbias[:, None], np.zeros(x.shape[0]), 1.0)
+    return z, safe
+
+
+def hyper_contract_moved(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray,
+                         cbias: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`hyper_contract` with ``S`` filter sets a block (``filters (n, S, K, p)``,
+    ``fbias (n, S, K)``, set ``S // 2`` at the reference, set ``S // 2 + k`` at the
+    reference moved by ``k step`` px): each block takes the set nearest its CoG along the
+    bins less ``cbias (n,)`` px (the reference's CoG), clipped to the sets. Returns ``(z (n,
+    K), safe (n, 1), chosen (n,) int64)``; a block without light or with a NaN takes set
+    ``S // 2``."""
     x = np.ascontiguousarray(x, dtype=np.float32)
     filters = np.ascontiguousarray(filters, dtype=np.float32)
     fbias = np.ascontiguousarray(fbias, dtype=np.float32)
-    if filters.shape[0] != x.shape[0] or filters.shape[2] != x.shape[1] or fbias.shape != filters.shape[:2]:
+    n, p = x.shape
+    if filters.ndim != 4 or filters.shape[0] != n or filters.shape[3] != p or fbias.shape != filters.shape[:3]:
         raise ValueError(f"hyper_contract: marginals {x.shape}, filters {filters.shape} and "
                          f"fbias {fbias.shape} do not match")
-    if not AVAILABLE:
-        tot = x.sum(axis=1, keepdims=True)
-        safe = np.where(np.isnan(tot), tot, np.maximum(tot, 1.0)).astype(np.float32)
-        z = (np.einsum("nkp,np->nk", filters, x) / safe + fbias).astype(np.float32)
-        return z, safe
-    z = np.empty(fbias.shape, dtype=np.float32)
-    safe = np.empty((x.shape[0], 1), dtype=np.float32)
-    _hyper_contract(x, filters, fbias, z, safe)
-    return z, safe
+    pos = (np.arange(p) - (p - 1) / 2).astype(np.float32)
+    cbias = np.ascontiguousarray(np.broadcast_to(cbias, (n,)), dtype=np.float32)
+    z = np.empty((n, filters.shape[2]), dtype=np.float32)
+    safe = np.empty((n, 1), dtype=np.float32)
+    chosen = np.empty(n, dtype=np.int64)
+    if AVAILABLE:
+        _hyper_contract(x, filters, fbias, pos, cbias, np.float32(step), z, safe, chosen)
+        return z, safe, chosen
+    half = filters.shape[1] // 2
+    tot = x.sum(axis=1)
+    safe = np.where(np.isnan(tot), tot, np.maximum(tot, 1.0)).astype(np.float32)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip((x @ pos / tot - cbias) / step, -half - 1.0, half + 1.0)
+    use = np.isfinite(t) & (tot > 0) & (filters.shape[1] > 1)
+    chosen = np.where(use, np.clip(half + np.floor(np.where(use, t, 0.0) + 0.5), 0,
+                                   filters.shape[1] - 1), half).astype(np.int64)
+    i = np.arange(n)
+    z = (np.einsum("nkp,np->nk", filters[i, chosen], x) / safe + fbias[i, chosen]).astype(np.float32)
+    return z, safe, chosen
 
 
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
@@ -1081,4 +1118,6 @@ def warm_up() -> None:
         block_rows(f, o, 4)
     invert_response(np.zeros((1, 2, 2, 2)), 1.0, np.zeros((1, 3, 2)), np.zeros((1, 2)), 1, 0.0)
     hyper_contract(np.zeros((1, 4), np.float32), np.zeros((1, 2, 4), np.float32), np.zeros((1, 2), np.float32))
+    hyper_contract_moved(np.ones((1, 4), np.float32), np.zeros((1, 3, 2, 4), np.float32),
+                         np.zeros((1, 3, 2), np.float32), np.zeros(1), 0.25)
     _warm = True

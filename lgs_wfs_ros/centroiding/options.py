@@ -202,6 +202,10 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                   "network reading the shift along that direction (grid); auto: what the "
                   "model was trained on. Polar detectors: unused.",
                   {"choices": ("auto", "overlap", "grid")}),
+                 ("recentre", False, "A filters model (ann_conv, ann_grid): read each block "
+                  "against its reference moved along the bins by the nearest of -0.5..0.5 px "
+                  "(quarter-pixel steps) to its calibrated CoG, filters for each made at every "
+                  "refit (false: against the reference alone)."),
                  *_PUPIL),
     "ml": _rows("ml", ("step_px", 0.25, "Grid step of the likelihood tables, pixels (a "
                        "parabola through the best grid point refines it).",
