@@ -605,7 +605,6 @@ class ANN(Centroider):
         self.cond = (self.cond[0], self._reference_code())
         self.__dict__.pop("_cond_rows", None)
         if self._recentre:
-            self._moved = None
             self._moved = self._moved_sets()
         self._offset = self._reference_offset()
 
@@ -619,25 +618,16 @@ class ANN(Centroider):
         shifts = (np.arange(RECENTRE_SETS) - RECENTRE_SETS // 2) * RECENTRE_STEP_PX
         u = np.tile([1.0, 0.0], (self.n, 1)) if self._bins is None else (
             self.layout.e if self._dir is None else self._dir)
-        names = self.meta["hyper_outputs"]
         fs, bs, less = [], [], []
-        pos = np.arange(self.p) - self.centre
         for t in shifts:
             along = self._along(self.pupil.image_at(t * np.asarray(u, dtype=np.float64)))
-            tot = along.sum(axis=1, keepdims=True, dtype=np.float64)
-            ref = np.where(tot > 0, along / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
-            f, b = self._refit.run(names, {self.meta["conditioning_input"]: np.ascontiguousarray(ref)})
+            f, b = self._refit_filters(along)
             fs.append(f)
             bs.append(b)
             if t == 0:
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    cbias = np.nan_to_num((along @ pos) / tot[:, 0])
-            if self._debias:
-                z, safe = kernels.hyper_contract(along, f, b)
-                names_t = self.meta["hyper_trunk"]
-                raw = self._trunk.run(None, {names_t["z"]: z, names_t["total"]: safe})[0][:, 0]
-            else:
-                raw = np.zeros(self.n)
+                cbias = np.nan_to_num(self._row_cog(along))
+            raw = self._trunk_out(*kernels.hyper_contract(along, f, b))[:, 0] if self._debias \
+                else np.zeros(self.n)
             less.append(np.nan_to_num(raw) - t / self.meta["output_scale"])
         return (np.ascontiguousarray(np.stack(fs, axis=1), dtype=np.float32),
                 np.ascontiguousarray(np.stack(bs, axis=1), dtype=np.float32),
@@ -746,13 +736,21 @@ class ANN(Centroider):
         if self.marginals:                  # bins along e (polar: the column sums)
             ref = self._along(ref)
         ref = ref.reshape(self.n, -1)
-        tot = ref.sum(axis=1, keepdims=True)
-        ref = np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0).astype(np.float32)
         if self._refit is not None:                  # hyper: the per-subaperture filters
-            names = self.meta["hyper_outputs"]
-            outs = self._refit.run(names, {self.meta["conditioning_input"]: np.ascontiguousarray(ref)})
-            return {nm: np.ascontiguousarray(v, dtype=np.float32) for nm, v in zip(names, outs)}
-        return np.ascontiguousarray(ref @ self._ref_w, dtype=np.float32)
+            return dict(zip(self.meta["hyper_outputs"], self._refit_filters(ref)))
+        return np.ascontiguousarray(_unit_rows(ref) @ self._ref_w, dtype=np.float32)
+
+    def _refit_filters(self, ref: np.ndarray) -> list[np.ndarray]:
+        """A hyper model's per-subaperture outputs (``lgs_wfs.hyper_outputs``: filters,
+        fbias), float32, from references ``ref (n, h)`` (any scale: unit sum here)."""
+        outs = self._refit.run(self.meta["hyper_outputs"],
+                               {self.meta["conditioning_input"]: _unit_rows(ref)})
+        return [np.ascontiguousarray(v, dtype=np.float32) for v in outs]
+
+    def _trunk_out(self, z: np.ndarray, safe: np.ndarray) -> np.ndarray:
+        """``(n, 1)`` the declared trunk on the first layer ``z`` and totals ``safe``."""
+        names = self.meta["hyper_trunk"]
+        return self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
 
     def _observe(self, rows=None, flat=None) -> None:
         """Feed a frame to the pupil calibration (reference models); a refit installs the
@@ -932,16 +930,13 @@ class ANN(Centroider):
         float32 (filters in one compiled pass and the trunk in onnxruntime, when the model
         declares its trunk)."""
         if self._trunk is not None:
-            names = self.meta["hyper_trunk"]
             if self._moved is not None:                 # option recentre
                 f, b, less, cbias = self._moved
                 z, safe, k = kernels.hyper_contract_moved(x, f, b, cbias, RECENTRE_STEP_PX)
-                out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
-                out = out - less[np.arange(self.n), k][:, None]
+                out = self._trunk_out(z, safe) - less[np.arange(self.n), k][:, None]
             else:
                 f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
-                z, safe = kernels.hyper_contract(x, f, b)
-                out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
+                out = self._trunk_out(*kernels.hyper_contract(x, f, b))
         else:
             feed = {self.input_name: x}
             if self._refit is not None:
@@ -970,9 +965,7 @@ class ANN(Centroider):
         """A pixel hyper model's raw output ``(n, 2)`` float64 on counts ``flat (n, p*p)``."""
         f, b = (self.cond[1][nm] for nm in self.meta["hyper_outputs"])
         if self._trunk is not None:
-            z, safe = kernels.hyper_contract(flat, f, b)
-            names = self.meta["hyper_trunk"]
-            out = self._trunk.run(None, {names["z"]: z, names["total"]: safe})[0]
+            out = self._trunk_out(*kernels.hyper_contract(flat, f, b))
         else:
             feed = {self.input_name: np.ascontiguousarray(flat, dtype=np.float32), **self.cond[1]}
             out = self.session.run(None, feed)[0]
@@ -1040,6 +1033,13 @@ class ANN(Centroider):
             except (ValueError, OSError):
                 continue
         return path.stem
+
+
+def _unit_rows(ref: np.ndarray) -> np.ndarray:
+    """``ref (n, h)`` scaled to unit row sums, float32 C-contiguous (rows without light: 0)."""
+    tot = ref.sum(axis=1, keepdims=True)
+    return np.ascontiguousarray(np.where(tot > 0, ref / np.where(tot > 0, tot, 1.0), 0.0),
+                                dtype=np.float32)
 
 
 def _check_width(arg, width: int, label: str, n: int) -> None:
