@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
+
 #: pixels of a block whose footprint along e can touch a bin: at most 3 (width <= sqrt 2)
 SPAN = 3
 
@@ -131,8 +133,9 @@ def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray
 PROJECTIONS = ("overlap", "grid")
 
 #: how many whole-pixel sums a bin along d can take a share of (:func:`grid_tables`): sums
-#: 1 / sqrt 2 px apart whose footprints are sqrt 2 px wide reach a 1 px bin from 2.4 px
-GRID_SLOTS = 4
+#: 1 / sqrt 2 px apart whose footprints are sqrt 2 px wide reach a 1 px bin from 2.4 px (the
+#: compiled pass, :func:`.kernels.grid_bins`, unrolls that many)
+GRID_SLOTS = kernels.GRID_SLOTS
 
 #: the four pixel-grid directions, block axes: columns, diagonals, rows, anti-diagonals
 GRID_DIRECTIONS = np.array([(1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (1.0, -1.0)]) / np.array(

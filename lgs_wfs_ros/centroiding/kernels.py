@@ -378,6 +378,11 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
             bins[b, k] = (even[k + 2] + odd[k + 2]) * scale
 
 
+#: the whole-pixel sums a grid bin takes a share of, unrolled in the pass below
+#: (:data:`.bins_along_e.GRID_SLOTS`)
+GRID_SLOTS = 4
+
+
 def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
     # bins (n, p) float32 along the pixel-grid direction of each block (code: 0 columns,
     # 1 diagonals i + j, 2 rows, 3 anti-diagonals j - i + p - 1): whole pixels summed into
@@ -921,10 +926,10 @@ def grid_bins(frame: np.ndarray, origins: np.ndarray, p: int, code: np.ndarray,
     pixels summed along columns, rows, diagonals or anti-diagonals, each bin then a
     weighted sum of at most four of those sums: the tables of
     :func:`.bins_along_e.grid_tables`, ``code (n,)`` int8, ``sums (n, p, 4)`` int8,
-    ``shares (n, p, 4)`` float32), and its total, sum of x and sum of y (pixel indices from
+    ``shares (n, p, 4)`` float32, 4 = :data:`GRID_SLOTS`), and its total, sum of x and sum of y (pixel indices from
     0). No pixel is split on its own: its cost does not grow with sky background."""
     n = origins.shape[0]
-    if code.shape != (n,) or sums.shape != (n, p, 4) or shares.shape != (n, p, 4):
+    if code.shape != (n,) or sums.shape != (n, p, GRID_SLOTS) or shares.shape != (n, p, GRID_SLOTS):
         raise ValueError("grid_bins: code, sums and shares must be bins_along_e.grid_tables of the n blocks")
     bins = np.empty((n, p), dtype=np.float32)
     moments = np.empty((n, 3))
