@@ -54,10 +54,11 @@ def linear_hyper_model(path, hyper=True, inp="marginals"):
 
 def test_linear_hyper_model_is_the_pupil_calibrated_cog(tmp_path):
     """Through refits (period 3), on frames and stacks, ann with the linear hyper model equals
-    cog with bias = pupil (its bias alone, linearize false): the refit part gets the calibration's references when it refits."""
+    cog with bias = pupil (its bias alone; neither linearized): the refit part gets the calibration's references when it refits."""
     sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    ann = options.build("ann", sensor, {"model": str(linear_hyper_model(tmp_path / "h.onnx")), **pup})
+    ann = options.build("ann", sensor, {"model": str(linear_hyper_model(tmp_path / "h.onnx")),
+                                        "linearize": False, **pup})
     cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     plain = options.build("cog", sensor, {})
     assert ann._refit is not None and set(ann.cond[1]) == {"filters", "fbias"}

@@ -64,9 +64,10 @@ def frames(sensor, n, seed=0):
 
 def beside_calibrated_cog(sensor, model, bias="auto"):
     """``(ann with model, cog with bias = pupil, plain cog)``, the two calibrated ones
-    refitting every 3 frames with no averaging: what a linear model is checked against."""
+    refitting every 3 frames with no averaging, neither linearized: what a linear model is
+    checked against."""
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    return (options.build("ann", sensor, {"model": str(model), "bias": bias, **pup}),
+    return (options.build("ann", sensor, {"model": str(model), "bias": bias, "linearize": False, **pup}),
             options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup}),
             options.build("cog", sensor, {}))
 

@@ -316,6 +316,24 @@ def _hyper_contract_impl(x, filters, fbias, pos, cbias, step, z, safe, chosen):
             z[b, q] = acc / s + fbias[b, c, q]
 
 
+def _response_inverse_impl(x, r, t, gain, out):
+    # out (n,) = gain[b] * the inverse of the piecewise-linear response r[b] (n, S) at
+    # moves t (S,) at x[b] (extended past the ends by the end segments) + r[b, S // 2];
+    # x[b] itself where gain[b] is NaN (a response that does not increase) or x[b] is NaN
+    n, ns = r.shape
+    for b in range(n):
+        xb = x[b]
+        g = gain[b]
+        if g != g or xb != xb:
+            out[b] = xb
+            continue
+        k = 1
+        while k < ns - 1 and xb > r[b, k]:
+            k += 1
+        y = t[k - 1] + (xb - r[b, k - 1]) * (t[k] - t[k - 1]) / (r[b, k] - r[b, k - 1])
+        out[b] = g * y + r[b, ns // 2]
+
+
 def _add_counts_impl(acc, counts):
     # acc (N,) uint32 += counts (N,) uint8/uint16: a flat loop the compiler vectorises
     # (numpy's add with a cast runs its buffered casting loop: twice as long)
@@ -754,6 +772,7 @@ if AVAILABLE:
     _grid_bins = numba.njit(cache=True, nogil=True)(_grid_bins_impl)
     _hyper_contract = numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})(
         _hyper_contract_impl)
+    _response_inverse = numba.njit(cache=True, nogil=True)(_response_inverse_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
@@ -986,6 +1005,32 @@ def hyper_contract_moved(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray,
     return z, safe, chosen
 
 
+def response_inverse(x: np.ndarray, response: np.ndarray, moves: np.ndarray,
+                     gain: np.ndarray) -> np.ndarray:
+    """``(n,)`` float64: readings ``x (n,)`` mapped through the inverse of each row of a
+    piecewise-linear ``response (n, S)`` (its readings at ``moves (S,)``, increasing; past
+    the ends the end segments go on), times ``gain (n,)``, plus the response at the middle
+    move. A row whose gain is NaN, or a NaN reading, keeps ``x``. Used by ``ann``'s
+    option ``linearize`` (:meth:`.ann.ANN._along_response`)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    r = np.ascontiguousarray(response, dtype=np.float64)
+    t = np.ascontiguousarray(moves, dtype=np.float64)
+    g = np.ascontiguousarray(gain, dtype=np.float64)
+    if r.ndim != 2 or r.shape[0] != x.shape[0] or t.shape != (r.shape[1],) or g.shape != x.shape \
+            or r.shape[1] < 2:
+        raise ValueError(f"response_inverse: readings {x.shape}, response {r.shape}, moves "
+                         f"{t.shape} and gain {g.shape} do not match")
+    if AVAILABLE:
+        out = np.empty_like(x)
+        _response_inverse(x, r, t, g, out)
+        return out
+    k = np.clip((x[:, None] > r).sum(axis=1), 1, r.shape[1] - 1)
+    i = np.arange(x.shape[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        y = t[k - 1] + (x - r[i, k - 1]) * (t[k] - t[k - 1]) / (r[i, k] - r[i, k - 1])
+    return np.where(np.isnan(g) | np.isnan(x), x, g * y + r[:, r.shape[1] // 2])
+
+
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,
               norms: np.ndarray, bias: np.ndarray, margin: int,
               acc: np.ndarray | None = None) -> np.ndarray:
@@ -1125,4 +1170,5 @@ def warm_up() -> None:
     hyper_contract(np.zeros((1, 4), np.float32), np.zeros((1, 2, 4), np.float32), np.zeros((1, 2), np.float32))
     hyper_contract_moved(np.ones((1, 4), np.float32), np.zeros((1, 3, 2, 4), np.float32),
                          np.zeros((1, 3, 2), np.float32), np.zeros(1), 0.25)
+    response_inverse(np.zeros(1), np.array([[-1.0, 0.0, 1.0]]), np.array([-1.0, 0.0, 1.0]), np.ones(1))
     _warm = True

@@ -206,6 +206,12 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                   "against its reference moved along the bins by the nearest of -0.5..0.5 px "
                   "(quarter-pixel steps) to its calibrated CoG, filters for each made at every "
                   "refit (false: against the reference alone)."),
+                 ("linearize", True, "A model on bins along e with bias pupil (ann_conv, "
+                  "ann_grid, ann_hyper, ann_marg): remove the curvature of the network's "
+                  "response along the bins, measured at every refit on the noise-free "
+                  "calibrated reference moved by -1..1 px, keeping its gain (its slope over "
+                  "+-0.5 px); false: the reading less the reading of the reference. Other "
+                  "models: unused."),
                  *_PUPIL),
     "ml": _rows("ml", ("step_px", 0.25, "Grid step of the likelihood tables, pixels (a "
                        "parabola through the best grid point refines it).",
