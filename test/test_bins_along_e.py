@@ -125,7 +125,7 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
     """A marginals model is refused on a cartesian detector by its domain guard (trained
     polar), and with out_of_domain = warn reads bins along e: the linear model (the CoG of
     its input less the reference's) gives along e the CoG of the spot's bins less that of
-    the calibrated reference's bins, and across e the calibrated CoG (which reads v^T J s, J
+    the calibrated reference's bins (not linearized), and across e the calibrated CoG (which reads v^T J s, J
     its response: :meth:`ANN._solve_ab`), through refits and on
     frames and stacks, through windows moved to the references' light (the model declares
     lgs_wfs.bins_window reference); all subapertures are counted outside the domain."""
@@ -134,7 +134,8 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
     with pytest.raises(ValueError, match="polar detector; the sensor is cartesian"):
         make_centroider("ann", sensor, model=str(path))
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", **pup})
+    ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn",
+                                        "linearize": False, **pup})
     cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     lay = geometry.layout(sensor)
     e = np.asarray(lay.e)
@@ -264,7 +265,8 @@ def test_compiled_grid_bins_are_the_quantised_split_of_the_sums():
 
 
 def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_direction(tmp_path):
-    """With bins = grid the linear model (the CoG of its bins less the reference's) gives
+    """With bins = grid the linear model (the CoG of its bins less the reference's; not
+    linearized) gives
     the shift along the grid direction d, s . d, and the calibrated CoG across e reads
     v^T J s, J the calibrated CoG's response (the field's edge makes it differ from v . s
     on the outer blocks); on frames (the compiled pass) as on stacks."""
@@ -272,7 +274,7 @@ def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_dir
     path = linear_marginal_model(tmp_path / "marg.onnx")
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "grid",
-                                        **pup})
+                                        "linearize": False, **pup})
     cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     lay = geometry.layout(sensor)
     e = np.asarray(lay.e)
