@@ -636,10 +636,9 @@ class ANN(Centroider):
         pupil, less ``shift_k``, in raw output units), ``cbias`` the CoG along the bins of
         the reference, px."""
         shifts = (np.arange(RECENTRE_SETS) - RECENTRE_SETS // 2) * RECENTRE_STEP_PX
-        u = self._bins_direction()
         fs, bs, less = [], [], []
         for t in shifts:
-            along = self._along(self.pupil.image_at(t * np.asarray(u, dtype=np.float64)))
+            along = self._along_moved(t)
             f, b = self._refit_filters(along)
             fs.append(f)
             bs.append(b)
@@ -659,9 +658,8 @@ class ANN(Centroider):
         the slope of a straight line fitted to those within ``LINEAR_GAIN_SPAN_PX`` of zero
         (NaN where the readings do not increase with the move, or are not finite)."""
         moves = (np.arange(LINEAR_SETS) - LINEAR_SETS // 2) * LINEAR_STEP_PX
-        u = np.asarray(self._bins_direction(), dtype=np.float64)
-        r = np.stack([self._marginals_out(self._along(self.pupil.image_at(t * u)))[:, 0]
-                      for t in moves], axis=1).astype(np.float64) * self.meta["output_scale"]
+        r = np.stack([self._marginals_out(self._along_moved(t))[:, 0] for t in moves],
+                     axis=1).astype(np.float64) * self.meta["output_scale"]
         near = np.abs(moves) <= LINEAR_GAIN_SPAN_PX + 1e-9
         tc = moves[near] - moves[near].mean()
         gain = (r[:, near] - r[:, near].mean(axis=1, keepdims=True)) @ tc / (tc @ tc)
@@ -677,6 +675,11 @@ class ANN(Centroider):
         if self._response is None:
             return along
         return kernels.response_inverse(along, *self._response)
+
+    def _along_moved(self, t: float) -> np.ndarray:
+        """``(n, p)`` float32: the bins (:meth:`_along`) of each block's noise-free calibrated
+        reference moved by ``t`` px along them (options ``recentre`` and ``linearize``)."""
+        return self._along(self.pupil.image_at(t * np.asarray(self._bins_direction(), dtype=np.float64)))
 
     def _bins_direction(self) -> np.ndarray:
         """``(n, 2)`` block axes: the direction along which the bins lie (polar: x; cartesian:
