@@ -77,7 +77,7 @@ setup(
         "fast": ["numba>=0.68,<0.69"],
         # Test-only tools: aotools and the mcap reference readers check our own code;
         # colcon builds the package in a test, as a ROS install would.
-        "test": ["pytest>=8,<10", "aotools>=1.0.7,<2", "mcap-ros2-support>=0.5,<1",
+        "test": ["pytest>=8,<10", "pytest-xdist>=3.8,<4", "aotools>=1.0.7,<2", "mcap-ros2-support>=0.5,<1",
                  "import-linter>=2.16,<3",
                  "colcon-core>=0.15", "colcon-ros>=0.4", "colcon-python-setup-py>=0.2.8",
                  "colcon-package-selection>=0.2",

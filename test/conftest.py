@@ -1,7 +1,8 @@
 """Shared fixtures: ROS isolation and a per-test rclpy context with a spinning executor.
 
 Every test run gets its own ROS_DOMAIN_ID (unless the caller set one, as .ci/run does) and
-localhost-only discovery, so parallel runs on one machine never see each other's nodes.
+localhost-only discovery, so parallel runs on one machine never see each other's nodes; under
+pytest-xdist (``-n 2``) each worker takes the next domain after the run's.
 """
 
 import os
@@ -10,6 +11,9 @@ import threading
 import pytest
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")            # gw0, gw1, ... under -n
+if _WORKER.startswith("gw") and _WORKER[2:].isdigit():
+    os.environ["ROS_DOMAIN_ID"] = str(1 + (int(os.environ["ROS_DOMAIN_ID"]) + int(_WORKER[2:])) % 101)
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "1")
 

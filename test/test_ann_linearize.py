@@ -7,6 +7,7 @@ import pytest
 
 from lgs_wfs_ros.centroiding import ann as ann_mod
 from lgs_wfs_ros.centroiding import kernels, options
+from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 
 STILL = {"pupil_period": 10 ** 6}          # no refit: the references stay the calibration's first
@@ -102,3 +103,44 @@ def test_linearize_is_checked_and_unused_where_it_cannot_apply():
         ann_mod.ANN(sensor, linearize="yes")
     assert ann_mod.ANN(sensor, model="ann_ref").describe()["options"]["linearize"] is False
     assert ann_mod.ANN(sensor, bias="none").describe()["options"]["linearize"] is False
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_a_cartesian_frame_gives_what_the_stack_steps_give():
+    """The compiled pass after the network on a cartesian frame (:func:`.kernels.bins_shifts`:
+    scale, straightened response, CoG across e, the two combined, the reference's reading
+    removed, NaN without light) gives what the numpy steps give on the same frame as floats,
+    with the response and without it, and refuses mismatched shapes."""
+    sensor = Sensor(detector="cartesian", photons=1000.0)
+    frames = _frames(sensor, 5, seed=11)
+    frames[3][:16] = 0                                    # a row of dark blocks
+    live = options.build("ann", sensor, {"pupil_period": 2})
+    steps = options.build("ann", sensor, {"pupil_period": 2})
+    for k, f in enumerate(frames):
+        if k == 4:                                        # no refit on this frame
+            live._response = steps._response = None
+        got = live.centroid(f)
+        want = steps.centroid(f.astype(np.float32))       # not a kernel frame: numpy
+        assert np.array_equal(np.isnan(got), np.isnan(want))
+        assert np.isnan(got).any() == (k == 3)
+        np.testing.assert_allclose(got, want, atol=2e-4)
+        assert np.nanstd(got) > 0.2                       # the shifts, not zeros
+    assert live.pupil.fits == steps.pupil.fits == 2
+    n = 3
+    with pytest.raises(ValueError, match="bins_shifts"):
+        kernels.bins_shifts(np.zeros((n, 1), np.float32), 1.0, None, np.ones((n, 2)), 7.5,
+                            np.ones((n, 2)), np.ones((n, 2)), np.ones((n, 2)), None)
+
+
+def _frames(sensor, k: int, seed: int) -> list:
+    """``k`` uint16 frames: the first calibration's references at random shifts (0.4 px rms),
+    with photon noise."""
+    lay = geometry.layout(sensor)
+    cal = options.build("ann", sensor, STILL).pupil
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(k):
+        img = cal.image_at(rng.normal(0.0, 0.4, (lay.n_valid, 2)))
+        img = img / img.reshape(lay.n_valid, -1).sum(axis=1)[:, None, None]
+        out.append(geometry.stack_to_frame(rng.poisson(img * sensor.photons).astype(np.uint16), lay))
+    return out

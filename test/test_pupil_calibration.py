@@ -608,3 +608,19 @@ def test_one_radius_cannot_tell_a_lasting_tilt_from_the_profile_and_says_so():
     assert "one radius" in warning and "0.3 s" in warning
     assert "warning" not in table.build("cog", SMALL, {"bias": "pupil"}).describe()
     assert "warning" not in plain.describe()
+
+
+def test_calibrations_of_the_same_optics_share_their_thin_layer_spots():
+    """The projected thin-layer spots (the first refit's long part) are built once for
+    calibrations whose sensors differ only in photometry and frame rate, read-only, equal
+    to a fresh build; other optics (the launch) get their own."""
+    a = PupilCalibration(SMALL.replace(photons=100.0))
+    b = PupilCalibration(SMALL.replace(photons=3000.0, frame_rate_hz=500.0, background_e=2.0))
+    side = PupilCalibration(SMALL.replace(launch_xy_m=(8.0, 0.0)))
+    assert a.basis is b.basis and a._gram is b._gram
+    assert side.basis is not a.basis and not np.allclose(side.basis, a.basis)
+    fresh = a._hats_of(a.sensor)
+    for got, want in zip((a.basis, a._dbasis, a._colsum, a._dcolsum, a._gram), fresh):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="read-only"):
+        a.basis[0, 0, 0] = 1.0

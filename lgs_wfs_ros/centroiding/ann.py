@@ -758,7 +758,7 @@ class ANN(Centroider):
                 bad = ~(np.isfinite(det) & (np.abs(det) > 0.3))
                 m[bad] = ideal[bad]
             inv = np.linalg.inv(m)
-            self._ab = (inv[:, :, 0], inv[:, :, 1])
+            self._ab = (np.ascontiguousarray(inv[:, :, 0]), np.ascontiguousarray(inv[:, :, 1]))
         return self._ab
 
     def _row_cog(self, rows: np.ndarray) -> np.ndarray:
@@ -967,17 +967,17 @@ class ANN(Centroider):
                 along, mom = kernels.grid_bins(raw, kernels.origins(self), self.p, *self._grid_q)
             else:
                 along, mom = kernels.block_bins(raw, kernels.origins(self), self.p, *self._bins_q)
-            ok = mom[:, 0] > 0
-            with np.errstate(divide="ignore", invalid="ignore"):
-                across = self._across_e((mom[:, 1:] - self.centre * mom[:, :1]) / mom[:, :1])
-        else:
-            flat = self.float_stack(raw).reshape(self.n, -1)
-            tot = flat.sum(axis=1, dtype=np.float64)
-            ok = np.isfinite(tot) & (tot > 0)
-            if self.pupil.observe(np.asarray(flat, dtype=np.float64), ok):
-                self._install_reference()
-            stack = np.where(ok[:, None], flat, 0.0).reshape(self.n, self.p, self.p)
-            along, across = self._along(stack), self._across(stack)
+            out = kernels.bins_shifts(self._marginals_out(along), self.meta["output_scale"],
+                                      self._response, mom, self.centre, self.layout.e,
+                                      *self._solve_ab(), self._offset)
+            return self.finish(out, mom[:, 0] > 0)          # the steps below, one pass
+        flat = self.float_stack(raw).reshape(self.n, -1)
+        tot = flat.sum(axis=1, dtype=np.float64)
+        ok = np.isfinite(tot) & (tot > 0)
+        if self.pupil.observe(np.asarray(flat, dtype=np.float64), ok):
+            self._install_reference()
+        stack = np.where(ok[:, None], flat, 0.0).reshape(self.n, self.p, self.p)
+        along, across = self._along(stack), self._across(stack)
         x = self._marginals_out(np.ascontiguousarray(along))[:, 0] * self.meta["output_scale"]
         x = self._straight(x)
         return self.finish(self._debiased(self._combine(x, across)), ok)

@@ -316,22 +316,46 @@ def _hyper_contract_impl(x, filters, fbias, pos, cbias, step, z, safe, chosen):
             z[b, q] = acc / s + fbias[b, c, q]
 
 
+def _inverse_at_impl(xb, r, t, g, b):
+    # gain g * the inverse of the piecewise-linear response r[b] (S readings at moves t,
+    # extended past the ends by the end segments) at xb, + r[b, S // 2]; xb itself where g
+    # is NaN (a response that does not increase) or xb is NaN
+    ns = r.shape[1]
+    if g != g or xb != xb:
+        return xb
+    k = 1
+    while k < ns - 1 and xb > r[b, k]:
+        k += 1
+    y = t[k - 1] + (xb - r[b, k - 1]) * (t[k] - t[k - 1]) / (r[b, k] - r[b, k - 1])
+    return g * y + r[b, ns // 2]
+
+
 def _response_inverse_impl(x, r, t, gain, out):
-    # out (n,) = gain[b] * the inverse of the piecewise-linear response r[b] (n, S) at
-    # moves t (S,) at x[b] (extended past the ends by the end segments) + r[b, S // 2];
-    # x[b] itself where gain[b] is NaN (a response that does not increase) or x[b] is NaN
-    n, ns = r.shape
-    for b in range(n):
-        xb = x[b]
-        g = gain[b]
-        if g != g or xb != xb:
-            out[b] = xb
+    # out (n,): _inverse_at of each reading x (n,) through its row of r (n, S)
+    for b in range(r.shape[0]):
+        out[b] = _inverse_at(x[b], r, t, gain[b], b)
+
+
+def _bins_shifts_impl(raw, scale, r, t, gain, mom, centre, e, a, c, offset, out):
+    # out (n, 2) float64: along the bins raw[b, 0] * scale (float32, as numpy forms it),
+    # through _inverse_at when r has columns; across e the CoG of the moments mom (n, 3)
+    # (total, sum x, sum y) less centre, onto (-e_y, e_x); out = along a + across c less
+    # offset; NaN without light
+    straight = r.shape[1] > 0
+    for b in range(raw.shape[0]):
+        tot = mom[b, 0]
+        if not tot > 0:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
             continue
-        k = 1
-        while k < ns - 1 and xb > r[b, k]:
-            k += 1
-        y = t[k - 1] + (xb - r[b, k - 1]) * (t[k] - t[k - 1]) / (r[b, k] - r[b, k - 1])
-        out[b] = g * y + r[b, ns // 2]
+        x = np.float64(raw[b, 0] * scale)
+        if straight:
+            x = _inverse_at(x, r, t, gain[b], b)
+        cx = (mom[b, 1] - centre * tot) / tot
+        cy = (mom[b, 2] - centre * tot) / tot
+        across = -e[b, 1] * cx + e[b, 0] * cy
+        out[b, 0] = x * a[b, 0] + across * c[b, 0] - offset[b, 0]
+        out[b, 1] = x * a[b, 1] + across * c[b, 1] - offset[b, 1]
 
 
 def _add_counts_impl(acc, counts):
@@ -772,7 +796,9 @@ if AVAILABLE:
     _grid_bins = numba.njit(cache=True, nogil=True)(_grid_bins_impl)
     _hyper_contract = numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})(
         _hyper_contract_impl)
+    _inverse_at = numba.njit(cache=True, nogil=True, inline="always")(_inverse_at_impl)
     _response_inverse = numba.njit(cache=True, nogil=True)(_response_inverse_impl)
+    _bins_shifts = numba.njit(cache=True, nogil=True)(_bins_shifts_impl)
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = numba.njit(cache=True, nogil=True, error_model="numpy",
@@ -1029,6 +1055,37 @@ def response_inverse(x: np.ndarray, response: np.ndarray, moves: np.ndarray,
     with np.errstate(divide="ignore", invalid="ignore"):
         y = t[k - 1] + (x - r[i, k - 1]) * (t[k] - t[k - 1]) / (r[i, k] - r[i, k - 1])
     return np.where(np.isnan(g) | np.isnan(x), x, g * y + r[:, r.shape[1] // 2])
+
+
+def bins_shifts(raw: np.ndarray, scale: float, response: tuple | None, moments: np.ndarray,
+                centre: float, e: np.ndarray, a: np.ndarray, c: np.ndarray,
+                offset: np.ndarray | None) -> np.ndarray:
+    """``(n, 2)`` float64 shifts, block axes, px, of a bins-along-e network's frame in one
+    pass: the reading along the bins ``raw (n, 1)`` float32 times ``scale`` (in float32),
+    through :func:`response_inverse` of ``response = (readings (n, S), moves (S,), gain
+    (n,))`` unless None; across e the CoG of ``moments (n, 3)`` (:func:`grid_bins`) less
+    ``centre`` onto ``(-e_y, e_x)`` for ``e (n, 2)``; the shift ``along a + across c``
+    (``(n, 2)`` each) less ``offset (n, 2)`` (or nothing); NaN for a block without light.
+    The steps of :meth:`.ann.ANN._centroid_bins` after the network, without their nine
+    array passes; compiled only (check :data:`AVAILABLE`)."""
+    n = raw.shape[0]
+    if response is None:
+        r, t, g = np.zeros((n, 0)), np.zeros(0), np.zeros(n)
+    else:
+        r, t, g = (np.ascontiguousarray(v, dtype=np.float64) for v in response)
+        if r.shape[0] != n or t.shape != (r.shape[1],) or g.shape != (n,) or r.shape[1] < 2:
+            raise ValueError(f"bins_shifts: response {r.shape}, moves {t.shape} and gain {g.shape} "
+                             f"do not match {n} blocks")
+    f64 = (lambda v: np.ascontiguousarray(v, dtype=np.float64))
+    off = np.zeros((n, 2)) if offset is None else f64(offset)
+    args = [f64(moments), f64(e), f64(a), f64(c), off]
+    if raw.shape != (n, 1) or any(v.shape != (n, k) for v, k in zip(args, (3, 2, 2, 2, 2))):
+        raise ValueError(f"bins_shifts: readings {raw.shape}, moments {moments.shape}, e, a, c "
+                         f"and offset must be ({n}, 1), ({n}, 3) and ({n}, 2)")
+    out = np.empty((n, 2))
+    _bins_shifts(np.ascontiguousarray(raw, dtype=np.float32), np.float32(scale), r, t, g,
+                 args[0], float(centre), *args[1:], out)
+    return out
 
 
 def ml_search(frame: np.ndarray, origins: np.ndarray, p: int, logs: np.ndarray,

@@ -37,7 +37,10 @@ tilts) averages out or shows up as residual.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
+import threading
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -169,27 +172,31 @@ class PupilCalibration:
 
     @property
     def basis(self) -> np.ndarray:
-        """``(n, nb, K)`` projected thin-layer spots (built on first use, ~2-5 s), and with
-        them ``_dbasis``, their derivative with respect to a shift along e (px^-1, a forward
-        difference over 0.02 px: one more render)."""
+        """``(n, nb, K)`` projected thin-layer spots (built on first use, 2-5 s polar, ~18 s
+        cartesian, then shared: :func:`shared_hats`), and with them ``_dbasis``, their
+        derivative with respect to a shift along e (px^-1, a forward difference over 0.02
+        px: one more render)."""
         if self._basis is None:
             # the mean image of a spot under random tilts of rms s per axis is the spot with
             # its Gaussian core widened by s: fit the means against spots so blurred
             sensor = self.sensor.replace(
                 core_fwhm_px=math.hypot(self.sensor.core_fwhm_px, FWHM_PER_SIGMA * self.blur_px))
-            hats = lambda shift: projected_hats(sensor, self.layout.r_m, self.layout.e,  # noqa: E731
-                                                self.nodes_m, self.projection, shift)
-            b, h = hats(None), 0.02
-            self._dbasis = (hats(h * self._e_pix) - b) / h
-            self._basis = b
-            self._colsum = b.sum(axis=1)                                       # (n, K)
-            self._dcolsum = self._dbasis.sum(axis=1)                           # (n, K)
-            flat = b.reshape(-1, b.shape[2])
-            self._gram = flat.T @ flat
-            k = b.shape[2]
+            (self._basis, self._dbasis, self._colsum, self._dcolsum,
+             self._gram) = shared_hats(sensor, self.nodes_m, self._hats_of)
+            k = self._basis.shape[2]
             d2 = np.diff(np.eye(k), 2, axis=0)
             self._rough = d2.T @ d2
         return self._basis
+
+    def _hats_of(self, sensor) -> tuple:
+        """``(basis, dbasis, colsum, dcolsum, gram)`` of :attr:`basis` for ``sensor`` (the
+        calibration's, its core widened by the tilt blur), built."""
+        hats = lambda shift: projected_hats(sensor, self.layout.r_m, self.layout.e,  # noqa: E731
+                                            self.nodes_m, self.projection, shift)
+        b, h = hats(None), 0.02
+        db = (hats(h * self._e_pix) - b) / h
+        flat = b.reshape(-1, b.shape[2])
+        return b, db, b.sum(axis=1), db.sum(axis=1), flat.T @ flat
 
     # -- per frame --------------------------------------------------------------------
     def observe(self, flat: np.ndarray, ok: np.ndarray | None = None) -> bool:
@@ -657,6 +664,38 @@ class PupilCalibration:
 # its last iterate implies is within this of the one it used (one solve a refit when steady).
 PULL_TOL_PX = 1e-3
 FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
+
+#: how many sets of projected thin-layer spots :func:`shared_hats` keeps (130 MB for the
+#: full cartesian pupil: 2 x 2,784 blocks x 23 bins x 120 nodes)
+HATS_KEPT = 2
+_HATS: OrderedDict = OrderedDict()
+_HATS_LOCK = threading.Lock()
+#: sensor fields a noise-free spot of unit light does not depend on
+_NOT_OPTICS = ("photons", "read_noise_e", "background_e", "frame_rate_hz", "dtype", "r0_m",
+               "r0_wavelength_m", "outer_scale_m", "wind_speed_mps", "wind_direction_deg")
+
+
+def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
+    """``build(sensor)``'s read-only arrays, built once for every calibration of the same
+    optics and nodes in this process (the benchmark's and replay's many estimators, a
+    centroider switched at run time: each first refit rendered them anew, 2-20 s); the
+    :data:`HATS_KEPT` latest are kept. Photometry, noise, frame rate and turbulence do
+    not enter the key: a spot of unit light does not depend on them."""
+    defaults = {f.name: f.default for f in dataclasses.fields(sensor) if f.name in _NOT_OPTICS}
+    key = (sensor.replace(**defaults), np.asarray(nodes_m, dtype=np.float64).tobytes())
+    with _HATS_LOCK:
+        if key in _HATS:
+            _HATS.move_to_end(key)
+            return _HATS[key]
+    out = tuple(build(sensor))
+    for a in out:
+        a.flags.writeable = False
+    with _HATS_LOCK:
+        _HATS[key] = out
+        while len(_HATS) > HATS_KEPT:
+            _HATS.popitem(last=False)
+    return out
+
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
