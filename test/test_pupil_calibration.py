@@ -523,6 +523,35 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     live.pupil.wait()
 
 
+def test_background_refit_makes_the_networks_references_in_its_thread():
+    """ann with pupil_async: the network's part of a refit (its filters from the new
+    references, its reading of them, the straightened response) is made in the refit's
+    thread; the install frame renders nothing and runs none of it, and its slopes are the
+    inline mode's, refitted from the same frames."""
+    s, frames = _narrow_polar_frames(seed=7, count=3)
+    opts = {"pupil_period": 2, "out_of_domain": "warn"}
+    inline = table.build("ann", s, opts)
+    live = table.build("ann", s, {**opts, "pupil_async": True})
+    before = (live.cond[1], live._offset, live._response)
+    want = [inline.centroid(f) for f in frames]
+    live.centroid(frames[0])
+    live.centroid(frames[1])
+    live.pupil.wait()
+
+    def on_frame_path(*args, **kwargs):
+        raise AssertionError("the network's references were made on the frame path")
+    live.pupil.image_at = live.pupil.reference_image = live.pupil.counts = on_frame_path
+    live._prepare_reference = on_frame_path
+    got = live.centroid(frames[2])
+    del live.pupil.image_at, live.pupil.reference_image, live.pupil.counts, live._prepare_reference
+    assert live.pupil.fits == 1 and live._response is not None
+    for now, then in ((live.cond[1]["filters"], before[0]["filters"]), (live._offset, before[1]),
+                      (live._response[0], before[2][0])):         # all of it refitted
+        assert np.abs(now - then).max() > 1e-4
+    np.testing.assert_array_equal(got, want[2])
+    live.pupil.wait()
+
+
 def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
     """pupil_async_lag: each refit is installed exactly lag frames after it started, so a
     refit that is slow (held 0.3 s in its thread) and one that is not give the same slopes

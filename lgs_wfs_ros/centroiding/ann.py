@@ -73,6 +73,7 @@ in ``$LGS_WFS_MODELS`` (``os.pathsep``-separated) and the user directory
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -588,6 +589,8 @@ class ANN(Centroider):
         if self.pupil is not None:
             if self._bins is not None:     # the solve's CoG response, off the frame path too
                 self.pupil.want_response = True
+            if self.pupil.asynchronous:    # the network's part of a refit too
+                self.pupil.prepare = self._prepare_reference
             self._install_reference()
             if self._refit is None:                     # the reference's code, one row each
                 _check_width(inputs[self.cond[0]], self.cond[1].shape[1], "conditioning input", self.n)
@@ -612,7 +615,33 @@ class ANN(Centroider):
         q = bins_along_e.quantised(bins_along_e.moved(start, offset), w)
         self._bins, self._bins_q, self._window = (q[0], q[2]), q[:2], offset
 
+    # what taking the calibration's references sets (see _prepare_reference)
+    _INSTALL_STATE = ("_bins", "_bins_q", "_window", "cond", "_moved", "_offset", "_response", "_ab")
+
     def _install_reference(self) -> None:
+        """Take the calibration's current references (:meth:`_take_reference`): what a
+        background refit prepared (``pupil_async``), or made now."""
+        payload, self.pupil.payload = self.pupil.payload, None
+        if payload is None or payload["version"] != self.pupil.version:
+            payload = self._prepare_reference(self.pupil)
+        self.__dict__.pop("_cond_rows", None)
+        self.__dict__.update({k: v for k, v in payload.items() if k != "version"})
+
+    def _prepare_reference(self, calibration) -> dict:
+        """The attributes :meth:`_take_reference` sets for ``calibration``, made by a shallow
+        copy of this centroider (nothing the frame path reads is written): run in the refit
+        thread on its snapshot with ``pupil_async`` (the network's filters, its reading of
+        each reference and the straightened response: 0.3-1.4 s a cartesian refit that held
+        the frame path), else on the frame that completes a period."""
+        sh = copy.copy(self)
+        sh.pupil = calibration
+        sh.__dict__.pop("_ab", None)
+        sh._take_reference()
+        out = {k: sh.__dict__[k] for k in self._INSTALL_STATE if k in sh.__dict__}
+        out["version"] = calibration.version
+        return out
+
+    def _take_reference(self) -> None:
         """Take the calibration's current references: on a cartesian detector the windows of
         bins along e moved to where each reference's light is, then the model's code of the
         references and the offset every reading loses (:meth:`_reference_offset`)."""
@@ -621,7 +650,6 @@ class ANN(Centroider):
             self._place_window(bins_along_e.window_offsets(ref, self.layout.e))
         self.__dict__.pop("_ab", None)          # the solve follows the references' response
         self.cond = (self.cond[0], self._reference_code())
-        self.__dict__.pop("_cond_rows", None)
         if self._recentre:
             self._moved = self._moved_sets()
         self._offset = self._reference_offset()
