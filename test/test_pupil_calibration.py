@@ -493,6 +493,19 @@ def test_background_refit_never_blocks_frames_and_installs_the_inline_result():
     live.pupil.wait()
 
 
+def _refitted_in_the_background(alg: str, s, opts: dict, frames) -> tuple:
+    """``(inline, live, want)``: ``alg`` refitting every 2 frames inline, and with
+    ``pupil_async`` fed the first two frames (its refit finished in its thread, not yet
+    installed); ``want`` the inline mode's slopes of every frame."""
+    inline = table.build(alg, s, {**opts, "pupil_period": 2})
+    live = table.build(alg, s, {**opts, "pupil_period": 2, "pupil_async": True})
+    want = [inline.centroid(f) for f in frames]
+    live.centroid(frames[0])
+    live.centroid(frames[1])
+    live.pupil.wait()
+    return inline, live, want
+
+
 def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     """cog with bias='pupil' and pupil_async: after the refit lands, the bias it subtracts and
     the response it inverts are the inline mode's, refitted from the same frames, computed in
@@ -501,13 +514,8 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     n = geometry.layout(s).n_valid
     _, _, sm = true_spots(s, "high")
     frames = [sm.images(np.zeros((n, 2)))[0] * 1000.0 for _ in range(3)]
-    inline = table.build("cog", s, {"bias": "pupil", "pupil_period": 2})
-    live = table.build("cog", s, {"bias": "pupil", "pupil_period": 2, "pupil_async": True})
+    inline, live, want = _refitted_in_the_background("cog", s, {"bias": "pupil"}, frames)
     prior = live._bias.copy()
-    want = [inline.centroid(f) for f in frames]
-    live.centroid(frames[0])
-    live.centroid(frames[1])
-    live.pupil.wait()
 
     def no_render(*args, **kwargs):
         raise AssertionError("the reference was rendered on the frame path")
@@ -529,14 +537,8 @@ def test_background_refit_makes_the_networks_references_in_its_thread():
     thread; the install frame renders nothing and runs none of it, and its slopes are the
     inline mode's, refitted from the same frames."""
     s, frames = _narrow_polar_frames(seed=7, count=3)
-    opts = {"pupil_period": 2, "out_of_domain": "warn"}
-    inline = table.build("ann", s, opts)
-    live = table.build("ann", s, {**opts, "pupil_async": True})
+    _, live, want = _refitted_in_the_background("ann", s, {"out_of_domain": "warn"}, frames)
     before = (live.cond[1], live._offset, live._response)
-    want = [inline.centroid(f) for f in frames]
-    live.centroid(frames[0])
-    live.centroid(frames[1])
-    live.pupil.wait()
 
     def on_frame_path(*args, **kwargs):
         raise AssertionError("the network's references were made on the frame path")
