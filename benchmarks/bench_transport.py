@@ -123,6 +123,10 @@ ALGORITHMS = {  # name -> (algorithm, extra params); cmf: static model reference
     # matched filters at a grid of positions, refits (125 renders, ~1-3 s) in a thread every
     # 1400 frames (7 s at 200 Hz: the profile evolves over seconds)
     "gmf_async": ("gmf", {"gmf.pupil_async": True, "gmf.pupil_period": 1400}),
+    # the default network (ann_grid on cartesian pixels) with its refits, and since
+    # 2026-11-27 the network's part of them (filters, offset, straightened response), in a
+    # thread, each installed as soon as it is ready
+    "ann_async": ("ann", {"ann.pupil_async": True, "ann.pupil_async_lag": 0}),
 }
 
 
