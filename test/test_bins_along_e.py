@@ -323,3 +323,19 @@ def test_a_model_trained_on_grid_sums_reads_them_by_itself(tmp_path):
     bad = linear_marginal_model(tmp_path / "b.onnx", metadata={"lgs_wfs.bins_projection": "sideways"})
     with pytest.raises(ValueError, match="bins_projection"):
         options.build("ann", sensor, {"model": str(bad), **pup})
+
+
+def test_the_sparse_projector_gives_project_s_sums():
+    """:class:`.bins_along_e.Projector` (the split as a sparse matrix, for a refit's many
+    projections) gives :func:`.bins_along_e.project`'s sums, for the overlap and the grid
+    splits of the full cartesian pupil, a block with a NaN pixel all NaN."""
+    lay = geometry.layout(Sensor(detector="cartesian"))
+    rng = np.random.default_rng(9)
+    flat = rng.gamma(2.0, 10.0, (lay.n_valid, P * P))
+    flat[5, 17] = np.nan
+    for start, w in (bins_along_e.overlap_weights(lay.e, P), bins_along_e.grid_weights(lay.e, P)[:2]):
+        proj = bins_along_e.Projector(start, w)
+        got, want = proj(flat), bins_along_e.project(flat, start, w)
+        assert np.isnan(got[5]).all() and np.isfinite(np.delete(got, 5, axis=0)).all()
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+        assert proj.split[0] is start

@@ -616,7 +616,8 @@ class ANN(Centroider):
         self._bins, self._bins_q, self._window = (q[0], q[2]), q[:2], offset
 
     # what taking the calibration's references sets (see _prepare_reference)
-    _INSTALL_STATE = ("_bins", "_bins_q", "_window", "cond", "_moved", "_offset", "_response", "_ab")
+    _INSTALL_STATE = ("_bins", "_bins_q", "_window", "cond", "_moved", "_offset", "_response", "_ab",
+                      "_projector")
 
     def _install_reference(self) -> None:
         """Take the calibration's current references (:meth:`_take_reference`): what a
@@ -736,7 +737,10 @@ class ANN(Centroider):
         if self._bins is None:
             return np.ascontiguousarray(stack.sum(axis=1), dtype=np.float32)
         flat = np.asarray(stack).reshape(self.n, -1)
-        return np.ascontiguousarray(bins_along_e.project(flat, *self._bins), dtype=np.float32)
+        proj = self.__dict__.get("_projector")
+        if proj is None or any(a is not b for a, b in zip(proj.split, self._bins)):   # windows moved
+            proj = self._projector = bins_along_e.Projector(*self._bins)
+        return np.ascontiguousarray(proj(flat), dtype=np.float32)
 
     def _across(self, stack: np.ndarray) -> np.ndarray:
         """``(n,)`` px from the block centre: the CoG across e of ``stack (n, p, p)`` (block y's

@@ -253,6 +253,37 @@ def project(flat: np.ndarray, start: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code",
+class Projector:
+    """:func:`project` of one split as a sparse matrix, for the many projections of a refit
+    (the network's reading of each moved reference): built once (~20 ms for the full
+    pupil), then each call ~1.5 ms instead of ~23 (the same sums).
+
+    Args:
+        start, w: a split (:func:`overlap_weights`, :func:`grid_weights`, :func:`quantised`),
+            ``(n, p*p)`` and ``(n, p*p, SPAN)``.
+    """
+
+    def __init__(self, start: np.ndarray, w: np.ndarray):
+        from scipy import sparse
+        n, pp = start.shape
+        p = int(round(pp ** 0.5))
+        k = start[..., None].astype(np.int64) + np.arange(w.shape[2])                 # (n, pp, 3)
+        ok = (k >= 0) & (k < p)
+        rows = (k + p * np.arange(n)[:, None, None])[ok]
+        cols = np.broadcast_to((np.arange(n * pp).reshape(n, pp))[..., None], k.shape)[ok]
+        self.shape = (n, p)
+        self.split = (start, w)
+        self.matrix = sparse.csr_matrix((np.asarray(w, dtype=np.float64)[ok], (rows, cols)),
+                                        shape=(n * p, n * pp))
+
+    def __call__(self, flat: np.ndarray) -> np.ndarray:
+        """``(n, p)`` float64: as :func:`project` of ``flat (n, p*p)``."""
+        flat = np.asarray(flat, dtype=np.float64)
+        out = (self.matrix @ flat.ravel()).reshape(self.shape)
+        out[~np.isfinite(flat).all(axis=1)] = np.nan
+        return out
+
+
+__all__ = ["GRID_DIRECTIONS", "Projector", "GRID_SLOTS", "PROJECTIONS", "SPAN", "WINDOWS", "grid_code",
            "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project",
            "quantised", "window_offsets"]
