@@ -625,7 +625,8 @@ class ANN(Centroider):
         payload, self.pupil.payload = self.pupil.payload, None
         if payload is None or payload["version"] != self.pupil.version:
             payload = self._prepare_reference(self.pupil)
-        self.__dict__.pop("_cond_rows", None)
+        for stale in ("_cond_rows", "_ab"):      # remade from the new references when needed
+            self.__dict__.pop(stale, None)
         self.__dict__.update({k: v for k, v in payload.items() if k != "version"})
 
     def _prepare_reference(self, calibration) -> dict:
