@@ -637,7 +637,6 @@ class ANN(Centroider):
         the frame path), else on the frame that completes a period."""
         sh = copy.copy(self)
         sh.pupil = calibration
-        sh.__dict__.pop("_ab", None)
         sh._take_reference()
         out = {k: sh.__dict__[k] for k in self._INSTALL_STATE if k in sh.__dict__}
         out["version"] = calibration.version
