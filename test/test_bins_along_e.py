@@ -244,16 +244,46 @@ def test_grid_bins_are_whole_pixel_sums_along_the_grid_direction(deg):
     assert np.abs(got - overlap).max() > 0.05 * img.max()
 
 
+@pytest.mark.parametrize("deg", [10.0, 40.0, 100.0, 130.0, 200.0, 318.0])
+def test_span_bins_hold_the_whole_block_in_sqrt_2_px_bins_along_diagonals(deg):
+    """With span a diagonal's bins are sqrt 2 px wide: the brute-force split of each pixel's
+    square on bins of that pitch along d, every sum whole (bin k: diagonal 2k and half of
+    each neighbour), so a block lit into its corners keeps all its light, which 1 px bins
+    lose; columns and rows are grid's bins."""
+    rng = np.random.default_rng(int(deg))
+    e = np.array([[np.cos(np.radians(deg)), np.sin(np.radians(deg))]])
+    img = rng.random((P, P))
+    start, w, u = bins_along_e.grid_weights(e, P, span=True)
+    got = bins_along_e.project(img.reshape(1, -1), start, w)[0]
+    np.testing.assert_allclose(got, _sums_on_unit_bins(img, u[0]), atol=1e-2 * img.max())
+    grid = bins_along_e.project(img.reshape(1, -1), *bins_along_e.grid_weights(e, P)[:2])[0]
+    d = bins_along_e.grid_direction(e)
+    if bins_along_e.grid_code(d)[0] in (0, 2):
+        np.testing.assert_array_equal(u, d)
+        np.testing.assert_allclose(got, grid, atol=1e-12)
+    else:
+        np.testing.assert_allclose(u, d / np.sqrt(2))
+        np.testing.assert_allclose(bins_along_e.bins_step(u), d * np.sqrt(2))
+        np.testing.assert_allclose(got.sum(), img.sum(), rtol=1e-9)
+        assert grid.sum() < 0.95 * img.sum()                   # the corners: ~9 %
+        y, x = np.indices((P, P)) - (P - 1) / 2
+        m = np.rint(2 * (x * u[0, 0] + y * u[0, 1]) + P - 1).astype(int)   # diagonals, in order along d
+        diag = np.bincount(m.ravel(), img.ravel(), 2 * P - 1)
+        want = diag[0::2][:P] + 0.5 * (np.r_[0.0, diag[1::2]][:P] + np.r_[diag[1::2], 0.0][:P])
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
 @pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
-def test_compiled_grid_bins_are_the_quantised_split_of_the_sums():
+@pytest.mark.parametrize("span", [False, True])
+def test_compiled_grid_bins_are_the_quantised_split_of_the_sums(span):
     """The frame pass for the grid bins (whole-row sums, then each sum's split) gives the
     quantised split of every pixel of the full cartesian pupil (all four kinds of sums, both
-    ways), and the block's moments exactly."""
+    ways; 1 px bins, or sqrt 2 px ones along diagonals), and the block's moments exactly."""
     sensor = Sensor(detector="cartesian")
     lay = geometry.layout(sensor)
     rng = np.random.default_rng(6)
     frame = rng.integers(0, 4000, size=sensor.frame_shape).astype(np.uint16)
-    start, w, d = bins_along_e.grid_weights(lay.e, P)
+    start, w, d = bins_along_e.grid_weights(lay.e, P, span=span)
     s8, _, wq = bins_along_e.quantised(start, w)
     code, sums, shares = bins_along_e.grid_tables(d, s8, wq)
     assert set(code) == {0, 1, 2, 3}
@@ -264,22 +294,25 @@ def test_compiled_grid_bins_are_the_quantised_split_of_the_sums():
     np.testing.assert_array_equal(mom, np.stack([flat.sum(1), flat @ x.ravel(), flat @ y.ravel()], 1))
 
 
-def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_direction(tmp_path):
+@pytest.mark.parametrize("bins", ["grid", "span"])
+def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_direction(tmp_path, bins):
     """With bins = grid the linear model (the CoG of its bins less the reference's; not
     linearized) gives
     the shift along the grid direction d, s . d, and the calibrated CoG across e reads
     v^T J s, J the calibrated CoG's response (the field's edge makes it differ from v . s
-    on the outer blocks); on frames (the compiled pass) as on stacks."""
+    on the outer blocks); on frames (the compiled pass) as on stacks. With bins = span the
+    reading is in the bins' pitch (sqrt 2 px along diagonals): s . u, u = d / pitch."""
     sensor = Sensor(detector="cartesian", photons=1000.0, launch_xy_m=(16.0, 0.0))   # long spots
     path = linear_marginal_model(tmp_path / "marg.onnx")
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
-    ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "grid",
+    ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": bins,
                                         "linearize": False, **pup})
     cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})
     lay = geometry.layout(sensor)
     e = np.asarray(lay.e)
     v = np.stack([-e[:, 1], e[:, 0]], axis=1)
-    start, w, d = bins_along_e.grid_weights(e, P)
+    start, w, d = bins_along_e.grid_weights(e, P, span=bins == "span")
+    assert (np.abs((d * d).sum(axis=1) - 0.5) < 1e-12).any() == (bins == "span")
     s8, _, wq = bins_along_e.quantised(start, w)
     pos = np.arange(P) - (P - 1) / 2
 
@@ -298,7 +331,7 @@ def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_dir
         vj = np.einsum("ni,nij->nj", v, cog.pupil.cog_response().forward(np.zeros((lay.n_valid, 2)))[1])
         assert np.abs(vj - v).max() > 2e-3                    # the field cuts some spots
         np.testing.assert_allclose((a * vj).sum(axis=1), (c * v).sum(axis=1), atol=2e-4)
-    assert ann.describe()["options"]["bins"] == "grid"
+    assert ann.describe()["options"]["bins"] == ann.describe()["bins_projection"] == bins
     with pytest.raises(ValueError, match="bins"):
         options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": "diagonal"})
 

@@ -455,7 +455,8 @@ class ANN(Centroider):
             the 1 px bins along e by its footprint, :func:`.bins_along_e.overlap_weights`) |
             "grid" (whole pixels summed along the pixel-grid direction nearest to e, bins
             along that direction, :func:`.bins_along_e.grid_weights`; the network reads
-            the shift along it, the CoG across e gives the rest).
+            the shift along it, the CoG across e gives the rest) | "span" (as grid, the
+            bins sqrt 2 px wide along diagonals so that they hold the whole block).
         recentre: a filters model (``ann_conv``, ``ann_grid``): at every refit also make
             the filters of the reference moved along the bins by ``-0.5 .. +0.5`` px in steps
             of :data:`RECENTRE_STEP_PX` (:data:`RECENTRE_SETS` sets); each block is read
@@ -524,13 +525,15 @@ class ANN(Centroider):
         # or along the grid direction nearest to e (option bins)
         self._bins = None
         self._window = None
-        self._dir = None        # the bins' direction where it is not e ("grid")
+        self._dir = None        # the bins' direction where it is not e (grid, span): u, bins a px
         bins = md["bins_projection"] if options["bins"] == "auto" else options["bins"]
-        if projectable and bins == "grid":
+        self._projection = bins if projectable else None
+        if projectable and bins in bins_along_e.GRID_PROJECTIONS:
             if md["bins_window"] != "centred":
-                raise ValueError(f"ann: bins 'grid' reads centred windows; {self.path.name} "
+                raise ValueError(f"ann: bins {bins!r} reads centred windows; {self.path.name} "
                                  f"reads {md['bins_window']!r} ones")
-            start, w, self._dir = bins_along_e.grid_weights(self.layout.e, self.p)
+            start, w, self._dir = bins_along_e.grid_weights(self.layout.e, self.p,
+                                                            span=bins == "span")
             self._centred = (start, w)
             self._place_window(np.zeros(self.n, dtype=np.int32))
             del self._centred
@@ -711,11 +714,12 @@ class ANN(Centroider):
         return self._along(self.pupil.image_at(t * np.asarray(self._bins_direction(), dtype=np.float64)))
 
     def _bins_direction(self) -> np.ndarray:
-        """``(n, 2)`` block axes: the direction along which the bins lie (polar: x; cartesian:
-        e, or the grid direction with ``bins`` grid)."""
+        """``(n, 2)`` block axes, px: the shift that moves the light one bin along the bins
+        (polar: x; cartesian: e, or the grid direction with ``bins`` grid; with ``bins``
+        span sqrt 2 px along a diagonal, :func:`.bins_along_e.bins_step`)."""
         if self._bins is None:
             return np.tile([1.0, 0.0], (self.n, 1))
-        return self.layout.e if self._dir is None else self._dir
+        return self.layout.e if self._dir is None else bins_along_e.bins_step(self._dir)
 
     def _reference_offset(self) -> np.ndarray | None:
         """``(n, 2)`` block axes, px, subtracted from every reading, or None: with ``bias``
@@ -771,7 +775,7 @@ class ANN(Centroider):
         """``(a, b)`` ``(n, 2)`` each, made once a refit: the shift is ``along a + across b``.
 
         The network reads the shift along its bins' direction ``u`` (``e``, or the grid
-        direction ``d``), the CoG across e reads ``v^T J s``, with ``J`` the calibrated CoG's
+        direction ``d``; with ``bins`` span ``d`` over the bins' pitch: in bins), the CoG across e reads ``v^T J s``, with ``J`` the calibrated CoG's
         response at zero shift (``pupil.cog_response``): where the field's edge cuts a spot
         on a cartesian block the cut moves with the shift along e and pulls the CoG across e
         (the identity elsewhere). ``(a, b)`` are the columns of ``[u; v^T J]^-1``; where
@@ -1106,7 +1110,7 @@ class ANN(Centroider):
         if self._bins is not None:       # a marginals model on a cartesian detector
             d["bins_window"] = {"kind": self.meta["bins_window"],
                                 "moved_subapertures": int(np.count_nonzero(self._window))}
-            d["bins_projection"] = "overlap" if self._dir is None else "grid"
+            d["bins_projection"] = self._projection
         if self.pupil is not None:
             pupil_cal.describe_into(d, self.pupil)
         return d

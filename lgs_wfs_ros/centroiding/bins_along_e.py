@@ -27,7 +27,8 @@ whole pixels summed along the pixel-grid direction ``d`` nearest to ``e`` (colum
 diagonals, anti-diagonals: at most 22.5 deg from ``e``), each sum then spread by its
 pixels' footprint over the 1 px bins along ``d``; the network reads the shift along ``d``
 and the CoG across ``e`` gives the rest (``ann``'s option ``bins``, a model's
-``lgs_wfs.bins_projection``).
+``lgs_wfs.bins_projection``). With projection ``span`` the bins along a diagonal are
+sqrt 2 px wide, so that they hold the whole block.
 """
 
 from __future__ import annotations
@@ -128,9 +129,13 @@ def overlap_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray
 
 
 #: how a cartesian block's light reaches the bins: "overlap" (each pixel split along e by
-#: its footprint) or "grid" (whole pixels summed along the pixel-grid direction nearest to
-#: e, then 1 px bins along that direction: :func:`grid_weights`)
-PROJECTIONS = ("overlap", "grid")
+#: its footprint), "grid" (whole pixels summed along the pixel-grid direction nearest to
+#: e, then 1 px bins along that direction: :func:`grid_weights`) or "span" (the same sums,
+#: the bins sqrt 2 px wide along diagonals so that they span the whole block)
+PROJECTIONS = ("overlap", "grid", "span")
+
+#: the projections that read whole-pixel sums along the grid (:func:`grid_weights`)
+GRID_PROJECTIONS = ("grid", "span")
 
 #: how many whole-pixel sums a bin along d can take a share of (:func:`grid_tables`): sums
 #: 1 / sqrt 2 px apart whose footprints are sqrt 2 px wide reach a 1 px bin from 2.4 px (the
@@ -151,7 +156,8 @@ def grid_direction(e_pixel: np.ndarray) -> np.ndarray:
     return np.where(((d * e).sum(axis=1) < 0)[:, None], -d, d)
 
 
-def grid_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grid_weights(e_pixel: np.ndarray, p: int,
+                 span: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Bins along the pixel-grid direction ``d`` nearest to ``e``: the overlap split of
     :func:`overlap_weights` along ``d`` instead of ``e``. Every pixel of one whole-pixel sum
     along the grid (a column or row sum, box footprint 1 px wide; a diagonal ``i + j`` or
@@ -160,12 +166,30 @@ def grid_weights(e_pixel: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray, n
     pixel on its own (:func:`grid_tables`). They keep 98-99 % of the block's information
     along e (``benchmarks/projection_information.py``, the shift across e known).
 
+    The bins are 1 px wide. A diagonal reaches ``p / sqrt 2`` px each side of the centre,
+    so ``p`` such bins drop its far corners, where a spot far off centre along a diagonal
+    (a high layer at the pupil's edge) has light. With ``span`` the bins along a diagonal
+    are ``sqrt 2`` px wide (the pitch ``|d_x| + |d_y|``): bin ``k`` takes diagonal ``2k``
+    whole and half of each of its neighbours, and the ``p`` bins hold the whole block
+    (columns and rows are as without). The bins' positions are then in units of that
+    pitch.
+
     Returns:
-        ``(start, w, d)``: as :func:`overlap_weights` for the bins along ``d``, and ``d
-        (n, 2)`` (:func:`grid_direction`).
+        ``(start, w, u)``: as :func:`overlap_weights` for the bins along ``d``, and ``u =
+        d / pitch (n, 2)``: a shift ``s`` (px, block axes) moves the light ``s . u`` bins
+        (``u = d``, :func:`grid_direction`, without ``span``).
     """
     d = grid_direction(e_pixel)
+    if span:
+        d = d / (np.abs(d[:, :1]) + np.abs(d[:, 1:]))
     return (*overlap_weights(d, p), d)
+
+
+def bins_step(u: np.ndarray) -> np.ndarray:
+    """``(n, 2)`` px, block axes: the shift that moves the light one bin along bins of
+    direction ``u (n, 2)`` (:func:`grid_weights`' ``u``, or a unit ``e``): ``u / |u|^2``."""
+    u = np.asarray(u, dtype=np.float64)
+    return u / (u * u).sum(axis=1, keepdims=True)
 
 
 def grid_code(d: np.ndarray) -> np.ndarray:
@@ -276,6 +300,6 @@ class Projector:
         return out
 
 
-__all__ = ["GRID_DIRECTIONS", "GRID_SLOTS", "PROJECTIONS", "Projector", "SPAN", "WINDOWS", "grid_code",
-           "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project",
+__all__ = ["GRID_DIRECTIONS", "GRID_PROJECTIONS", "GRID_SLOTS", "PROJECTIONS", "Projector", "SPAN",
+           "WINDOWS", "bins_step", "grid_code", "grid_direction", "grid_tables", "grid_weights", "moved", "overlap_weights", "project",
            "quantised", "window_offsets"]

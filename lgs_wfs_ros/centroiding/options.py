@@ -199,9 +199,10 @@ OPTIONS: dict[str, tuple[Option, ...]] = {
                  ("bins", "auto", "How a cartesian block's light reaches a column-sum "
                   "model's bins: each pixel split by its footprint along e (overlap), or "
                   "whole pixels summed along the pixel-grid direction nearest to e, the "
-                  "network reading the shift along that direction (grid); auto: what the "
-                  "model was trained on. Polar detectors: unused.",
-                  {"choices": ("auto", "overlap", "grid")}),
+                  "network reading the shift along that direction (grid), or those sums in "
+                  "bins sqrt 2 px wide along diagonals, holding the whole block (span); auto: "
+                  "what the model was trained on. Polar detectors: unused.",
+                  {"choices": ("auto", "overlap", "grid", "span")}),
                  ("recentre", False, "A filters model (ann_conv, ann_grid): read each block "
                   "against its reference moved along the bins by the nearest of -0.5..0.5 px "
                   "(quarter-pixel steps) to its calibrated CoG, filters for each made at every "

@@ -68,8 +68,9 @@ class Recipe:
             :data:`.refdata.WINDOWS`; tried for ``ann_conv`` on 2026-11-27 and not kept:
             docs/ann_ref.md "Windows moved to the light").
         bins_projection: marginal recipes on cartesian spots: "overlap" (each pixel split
-            along e by its footprint) or "grid" (whole-pixel sums along the pixel-grid
-            direction nearest to e: the frame pass without a split, half the cost).
+            along e by its footprint), "grid" (whole-pixel sums along the pixel-grid
+            direction nearest to e: the frame pass without a split, half the cost) or
+            "span" (grid, the bins along diagonals sqrt 2 px wide: the whole block).
         shipped: part of ``models/``.
         note: one sentence for the README table.
     """
@@ -110,8 +111,9 @@ class Recipe:
             from .refdata import MARGINAL_SPEC as pr
             polar = set(self.detectors) == {"polar"}
             cart = ("whole-pixel sums along the pixel-grid direction nearest to e on "
-                    "cartesian ones, the shift read along that direction)"
-                    if self.bins_projection == "grid" else
+                    "cartesian ones, the shift read along that direction"
+                    + (", sqrt 2 px bins along diagonals)" if self.bins_projection == "span" else ")")
+                    if self.bins_projection in ("grid", "span") else
                     "each pixel split by its overlap on cartesian ones" + (
                         ", the window moved to the reference's light)"
                         if self.bins_window == "reference" else ")"))
@@ -256,6 +258,15 @@ RECIPES["ann_grid"] = dataclasses.replace(
     note="ann_conv's network and data, the cartesian spots read through whole-pixel sums along "
          "the pixel-grid direction nearest to e (columns, rows or diagonals) and the shift "
          "along that direction: the frame pass splits no pixel")
+
+# ann_grid with the bins along diagonals sqrt 2 px wide, so that they hold the whole block:
+# the 1 px bins drop a diagonal block's far corners, where a high layer at the pupil's edge
+# puts light (docs/ann_ref.md "Bins that span a diagonal block")
+RECIPES["ann_span"] = dataclasses.replace(
+    RECIPES["ann_grid"], name="ann_span", bins_projection="span", shipped=False,
+    note="ann_grid's network and data, the bins along diagonals sqrt 2 px wide (each takes a "
+         "diagonal sum whole and half of each neighbour) so that the 16 bins hold the whole "
+         "block; columns and rows as ann_grid")
 
 # The paper recipes with the paper's own profile prior (independent normals per Gaussian
 # parameter: layer centroid spread ~1.2 km, extent stable), for the reproduction only: they

@@ -233,14 +233,15 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     the spot and its reference through the same window (``window``, :data:`WINDOWS`); with
     ``projection`` "grid", whole pixels summed along the pixel-grid direction ``d`` nearest
     to e instead (:func:`..centroiding.bins_along_e.grid_weights`, centred windows), the
-    target then the shift along ``d``."""
+    target then the shift along ``d``; "span" as grid with bins sqrt 2 px wide along
+    diagonals, the target in those bins."""
     if window not in WINDOWS:
         raise ValueError(f"marginal_pairs: window must be one of {WINDOWS}, not {window!r}")
     if projection not in bins_along_e.PROJECTIONS:
         raise ValueError(f"marginal_pairs: projection must be one of {bins_along_e.PROJECTIONS}, "
                          f"not {projection!r}")
-    if projection == "grid" and window != "centred":
-        raise ValueError("marginal_pairs: grid bins are read through centred windows")
+    if projection in bins_along_e.GRID_PROJECTIONS and window != "centred":
+        raise ValueError(f"marginal_pairs: {projection} bins are read through centred windows")
     r = rng.uniform(*spec.radius_m, size=n)
     if detector == "polar":
         e = np.tile([1.0, 0.0], (n, 1))
@@ -252,8 +253,8 @@ def marginal_pairs(rng: np.random.Generator, n: int, spec: PriorSpec = MARGINAL_
     along = e
     if detector == "polar":
         marg, refm = counts.sum(axis=1), ref.sum(axis=1)
-    elif projection == "grid":
-        start, w, along = bins_along_e.grid_weights(e, sensor.pixels)
+    elif projection in bins_along_e.GRID_PROJECTIONS:
+        start, w, along = bins_along_e.grid_weights(e, sensor.pixels, span=projection == "span")
         start, _, w = bins_along_e.quantised(start, w)          # as the frame pass splits
         marg = bins_along_e.project(counts.reshape(n, -1), start, w)
         refm = bins_along_e.project(ref.reshape(n, -1), start, w)
