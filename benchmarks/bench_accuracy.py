@@ -82,6 +82,9 @@ ESTIMATORS = {
     # trained on those sums (its cartesian spots; polar ones as ann_conv's): the cartesian
     # default since 2026-11-27
     "ann_grid": ("ann", {"model": "ann_grid"}),
+    # ann_grid's recipe on bins sqrt 2 px wide along diagonals, holding the whole block
+    # (bins_along_e.grid_weights span; docs/ann_ref.md "Bins that span a diagonal block")
+    "ann_span": ("ann", {"model": "ann_span"}),
     # each block read against the reference moved to the nearest quarter pixel of its
     # calibrated CoG along the bins (option recentre; docs/ann_ref.md "Moved references")
     "ann_conv_rc": ("ann", {"model": "ann_conv", "recentre": True}),

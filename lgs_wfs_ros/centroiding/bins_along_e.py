@@ -172,7 +172,9 @@ def grid_weights(e_pixel: np.ndarray, p: int,
     are ``sqrt 2`` px wide (the pitch ``|d_x| + |d_y|``): bin ``k`` takes diagonal ``2k``
     whole and half of each of its neighbours, and the ``p`` bins hold the whole block
     (columns and rows are as without). The bins' positions are then in units of that
-    pitch.
+    pitch. A network trained on them (recipe ``ann_span``, 2026-11-28) was not better on
+    the high layer and worse on the sporadic one: docs/ann_ref.md "Bins that span a
+    diagonal block"; no shipped model reads them.
 
     Returns:
         ``(start, w, u)``: as :func:`overlap_weights` for the bins along ``d``, and ``u =

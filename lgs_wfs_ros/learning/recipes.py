@@ -261,7 +261,8 @@ RECIPES["ann_grid"] = dataclasses.replace(
 
 # ann_grid with the bins along diagonals sqrt 2 px wide, so that they hold the whole block:
 # the 1 px bins drop a diagonal block's far corners, where a high layer at the pupil's edge
-# puts light (docs/ann_ref.md "Bins that span a diagonal block")
+# puts light. Tried 2026-11-28 and not shipped: cartesian high layer 1.104 -> 1.106x the
+# CRB, sporadic 1.084 -> 1.143x (docs/ann_ref.md "Bins that span a diagonal block")
 RECIPES["ann_span"] = dataclasses.replace(
     RECIPES["ann_grid"], name="ann_span", bins_projection="span", shipped=False,
     note="ann_grid's network and data, the bins along diagonals sqrt 2 px wide (each takes a "
