@@ -83,7 +83,8 @@ ESTIMATORS = {
     # default since 2026-11-27
     "ann_grid": ("ann", {"model": "ann_grid"}),
     # ann_grid's recipe on bins sqrt 2 px wide along diagonals, holding the whole block
-    # (bins_along_e.grid_weights span; docs/ann_ref.md "Bins that span a diagonal block")
+    # (bins_along_e.grid_weights span; docs/ann_ref.md "Bins that span a diagonal block");
+    # not shipped: `lgs-wfs train ann_span --out models` first
     "ann_span": ("ann", {"model": "ann_span"}),
     # each block read against the reference moved to the nearest quarter pixel of its
     # calibrated CoG along the bins (option recentre; docs/ann_ref.md "Moved references")
