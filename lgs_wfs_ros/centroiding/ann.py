@@ -775,10 +775,11 @@ class ANN(Centroider):
         """``(a, b)`` ``(n, 2)`` each, made once a refit: the shift is ``along a + across b``.
 
         The network reads the shift along its bins' direction ``u`` (``e``, or the grid
-        direction ``d``; with ``bins`` span ``d`` over the bins' pitch: in bins), the CoG across e reads ``v^T J s``, with ``J`` the calibrated CoG's
-        response at zero shift (``pupil.cog_response``): where the field's edge cuts a spot
-        on a cartesian block the cut moves with the shift along e and pulls the CoG across e
-        (the identity elsewhere). ``(a, b)`` are the columns of ``[u; v^T J]^-1``; where
+        direction ``d``; with ``bins`` span ``d`` over the bins' pitch: in bins), the CoG
+        across e reads ``v^T J s``, with ``J`` the calibrated CoG's response at zero shift
+        (``pupil.cog_response``): where the field's edge cuts a spot on a cartesian block
+        the cut moves with the shift along e and pulls the CoG across e (the identity
+        elsewhere). ``(a, b)`` are the columns of ``[u; v^T J]^-1``; where
         that matrix is far from the ideal ``[u; v]`` (determinant below 0.3, ideal at least
         cos 22.5 deg) or not finite, ``J = I``."""
         if "_ab" not in self.__dict__:
