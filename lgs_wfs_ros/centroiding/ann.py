@@ -576,6 +576,7 @@ class ANN(Centroider):
         self.options["bias"] = "pupil" if self._debias else "none"
         self._recentre = bool(options["recentre"])
         self._moved = None
+        self._drift = None
         self._response = None           # option linearize: (readings (n, S), moves (S,), gain (n,))
         self._linear = bool(options["linearize"]) and self.marginals and self._debias
         self.options["linearize"] = self._linear
@@ -620,7 +621,7 @@ class ANN(Centroider):
 
     # what taking the calibration's references sets (see _prepare_reference)
     _INSTALL_STATE = ("_bins", "_bins_q", "_window", "cond", "_moved", "_offset", "_response", "_ab",
-                      "_projector")
+                      "_projector", "_drift")
 
     def _install_reference(self) -> None:
         """Take the calibration's current references (:meth:`_take_reference`): what a
@@ -659,6 +660,8 @@ class ANN(Centroider):
         self._offset = self._reference_offset()
         if self._linear:
             self._response = self._along_response()
+        if self._offset is not None:
+            self._follow_drift(self._drift_reading)
 
     def _moved_sets(self) -> tuple:
         """``(filters (n, S, K, p), fbias (n, S, K), less (n, S), cbias (n,))`` of option
@@ -735,6 +738,14 @@ class ANN(Centroider):
             reading = self._combine(np.zeros(self.n), self._across(ref))
         return np.nan_to_num(reading, nan=0.0, posinf=0.0, neginf=0.0)
 
+    def _drift_reading(self, counts: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` what the frame path reads of noise-free ``counts (n, p, p)`` before
+        its offset: :meth:`_reading` straightened (the offset's own reading, for
+        :meth:`_follow_drift`)."""
+        if self._debias:
+            return self._reading(counts, straight=True)
+        return self._combine(np.zeros(self.n), self._across(counts))
+
     def _along(self, stack: np.ndarray) -> np.ndarray:
         """``(n, p)`` float32: the light of ``stack (n, p, p)`` in 1 px bins along e: the
         column sums on a polar detector, :mod:`.bins_along_e` on a cartesian one."""
@@ -804,12 +815,15 @@ class ANN(Centroider):
         with np.errstate(divide="ignore", invalid="ignore"):
             return rows @ (np.arange(self.p) - self.centre) / rows.sum(axis=1, dtype=np.float64)
 
-    def _reading(self, stack: np.ndarray) -> np.ndarray:
+    def _reading(self, stack: np.ndarray, straight: bool = False) -> np.ndarray:
         """``(n, 2)`` raw readings, block axes, px, of float counts ``stack (n, p, p)``,
-        no offset removed and nothing fed to the calibration."""
+        no offset removed and nothing fed to the calibration (``straight``: through
+        :meth:`_straight`, as the frame path reads)."""
         stack = np.asarray(stack, dtype=np.float32)
         if self.marginals:
             x = self._marginals_out(self._along(stack))[:, 0] * self.meta["output_scale"]
+            if straight:
+                x = self._straight(x)
             return self._combine(x, self._across(stack))
         if self._refit is not None:
             out = self._hyper_pixels_out(stack.reshape(self.n, -1))

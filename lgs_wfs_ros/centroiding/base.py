@@ -37,6 +37,7 @@ class Centroider:
     name = "base"
     pupil = None          # set by the estimators that use a pupil calibration
     _altitude = None      # their AltitudeTracker, made at the first frame that needs it
+    _drift = None         # (n, 2) block axes, px: see _follow_drift
 
     def __init__(self, sensor: Sensor, **options):
         if not isinstance(sensor, Sensor):
@@ -159,10 +160,36 @@ class Centroider:
         dtype = np.float64 if stack.dtype == np.float64 else np.float32
         return stack.astype(dtype, copy=False)
 
-    def finish(self, out: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    def _follow_drift(self, read) -> None:
+        """At a refit: how this estimator's reading of a spot at the true centre moves from
+        the middle of the period the refit serves to its end, as the calibration's trend
+        drifts the profile (``read(counts (n, p, p)) -> (n, 2)`` block axes, px, of noise-free
+        counts, nothing fed to the calibration: of :meth:`.PupilCalibration.drift_counts`
+        less of the reference's counts). :meth:`finish` removes it in proportion to
+        :meth:`.PupilCalibration.drift_phase`; None without a trend."""
+        drifted = self.pupil.drift_counts() if self.pupil is not None else None
+        if drifted is None:
+            self._drift = None
+            return
+        with np.errstate(divide="ignore", invalid="ignore"):
+            moved = np.asarray(read(drifted), dtype=np.float64) - read(self.pupil.counts()[0])
+        self._drift = np.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def _drift_term(self, pending: int = 0):
+        """``(n, 2)`` block axes, px: the part of :meth:`_follow_drift`'s move due now (0
+        without one; ``pending`` as :meth:`.PupilCalibration.drift_phase`'s)."""
+        if self._drift is None or self.pupil is None:
+            return 0.0
+        return self.pupil.drift_phase(pending) * self._drift
+
+    def finish(self, out: np.ndarray, ok: np.ndarray, drift: bool = True) -> np.ndarray:
         """Block-pixel-axes ``(n, 2)`` -> detector axes float64, NaN where not ``ok``; with a
-        pupil calibration whose ``altitude_s`` is set, corrected for the sodium altitude's
-        drift since its last refit (:class:`.altitude.AltitudeTracker`)."""
+        pupil calibration, less the profile's drift since the middle of the refit's period
+        (:meth:`_follow_drift`; ``drift=False``: the caller removed it) and, with
+        ``altitude_s`` set, corrected for the sodium altitude's drift since its last refit
+        (:class:`.altitude.AltitudeTracker`)."""
+        if drift and self._drift is not None:
+            out = out - self._drift_term()
         out = np.asarray(self.to_detector(out), dtype=np.float64)
         out[~ok] = np.nan
         pupil = self.pupil

@@ -126,10 +126,20 @@ class CoG(Centroider):
             self._calibrated()
 
     def _calibrated(self) -> None:
-        """Take the calibration's current bias and, linearised, its response."""
+        """Take the calibration's current bias and, linearised, its response, and follow
+        the profile's drift (:meth:`Centroider._follow_drift`)."""
         self._bias = self.pupil.cog_bias()
         if self._response is not None:
             self._response = self.pupil.cog_response()
+        self._follow_drift(self._reading)
+
+    def _reading(self, counts: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` block axes, px: the calibrated CoG of noise-free ``counts (n, p, p)``
+        (no background), as :meth:`centroid` reads a frame."""
+        c = np.nan_to_num(self.pupil._cog(counts))
+        if self._response is None:
+            return c - self._bias
+        return self._response.invert(c, iterations=1, outside="offset")[0]
 
     def describe(self) -> dict:
         d = super().describe()

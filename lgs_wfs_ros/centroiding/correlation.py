@@ -88,7 +88,13 @@ class Correlation(Centroider):
         self.pupil = None
         if o["reference"] == "pupil":
             self.pupil = pupil_cal.from_options(sensor, o, self.background)
-            self.ref.set(self.pupil.counts()[0] + self.background)
+            self._take_pupil_reference()
+
+    def _take_pupil_reference(self) -> None:
+        """The calibration's current references (counts plus the background), and the drift
+        of their reading to follow (:meth:`Centroider._follow_drift`)."""
+        self.ref.set(self.pupil.counts()[0] + self.background)
+        self._follow_drift(lambda counts: self._map_reading(counts + self.background))
 
     def set_reference(self, images) -> None:
         """Install a static reference ``(n_valid, p, p)`` counts, block pixel axes."""
@@ -102,7 +108,7 @@ class Correlation(Centroider):
         self.ref.reset()
         if self.pupil is not None:
             self.pupil.reset()
-            self.ref.set(self.pupil.counts()[0] + self.background)
+            self._take_pupil_reference()
         self._ref_version = -1
 
     def describe(self) -> dict:
@@ -122,7 +128,7 @@ class Correlation(Centroider):
                 and self.ref.source != "history" and self.ref.images is not None):
             return super().centroid(data)
         if self.pupil is not None and self.pupil.observe_frame(data):
-            self.ref.set(self.pupil.counts()[0] + self.background)
+            self._take_pupil_reference()
         self.ref.frames += 1
         refs, ref_cog = self._ref_kernel()
         out = kernels.corr_peak(data, kernels.origins(self), self.p, refs, ref_cog,
@@ -169,10 +175,15 @@ class Correlation(Centroider):
 
     def _centroid_pixels(self, stack, total, ok):
         if self.pupil is not None and self.pupil.observe(stack.reshape(self.n, -1), ok):
-            self.ref.set(self.pupil.counts()[0] + self.background)
+            self._take_pupil_reference()
         self.ref.observe(stack, ok)
+        return self._map_reading(stack)
+
+    def _map_reading(self, stack) -> np.ndarray:
+        """``(n, 2)`` block axes, px: the correlation maps' peaks of ``stack (n, p, p)``
+        against the current references (NaN where a reference is unusable)."""
         c = self.correlation_map(stack)
-        n, big, _ = c.shape
+        big = c.shape[-1]
         if self.peak == "cog":
             out = _map_cog(c, self.threshold) - big / 2
         else:

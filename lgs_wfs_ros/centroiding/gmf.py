@@ -153,6 +153,7 @@ class GMF(TabledCoG):
         self._filters, self._scale = payload["filters"], payload["scale"]
         self._rsum = payload["rsum"]
         self._ok, self._bias = payload["ok"], payload["bias"]
+        self._follow_drift(lambda c: self._numpy_slopes(c.reshape(self.n, -1) + self.background)[0])
 
     # -- frames --------------------------------------------------------------------------
     def centroid(self, data) -> np.ndarray:
@@ -160,6 +161,7 @@ class GMF(TabledCoG):
         nearest to its calibrated CoG, then the calibration sees the frame (a refit it makes
         applies from the next frame on)."""
         self._refresh()
+        drift = self._drift_term(pending=1)     # the frame is read before it is observed
         if kernels.fits(data, self.sensor.frame_shape):
             out, index = kernels.grid_filter(data, kernels.origins(self), self.p, self._bias,
                                              self._filters, self._scale, self._rsum,
@@ -173,7 +175,7 @@ class GMF(TabledCoG):
         ok = (index >= 0) & finite_rows(out) & self._ok
         if seen:
             self._refresh()
-        return self.finish(out, ok)
+        return self.finish(out - drift, ok, drift=False)
 
     def _numpy_slopes(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What :func:`.kernels.grid_filter` gives, for a float ``(n, p*p)`` stack."""

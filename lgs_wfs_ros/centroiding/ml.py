@@ -157,6 +157,7 @@ class ML(TabledCoG):
         self._version = payload["version"]
         self._tables, self._bias = payload["tables"], payload["bias"]
         self._rows = None                           # the numpy path's, made when needed
+        self._follow_drift(self._reading)
 
     # -- frames --------------------------------------------------------------------------
     def centroid(self, data) -> np.ndarray:
@@ -165,6 +166,7 @@ class ML(TabledCoG):
         (its block marginals, read in the same pass; a refit it makes applies from the next
         frame on)."""
         self._refresh()
+        drift = self._drift_term(pending=1)     # the frame is read before it is observed
         if kernels.fits(data, self.sensor.frame_shape):
             acc = self.pupil.marginal_buffer()
             t = self._tables
@@ -172,17 +174,24 @@ class ML(TabledCoG):
                                     self._bias, t.margin, acc)
             if self.pupil.observed_marginals(acc is not None):
                 self._refresh()                   # the new tables now, on the refit's frame
-            return self.finish(out, finite_rows(out))
+            return self.finish(out - drift, finite_rows(out), drift=False)
         flat = self.float_stack(data).reshape(self.n, -1)
         tot = flat.sum(axis=1, dtype=np.float64)
         ok = np.isfinite(tot) & (tot > 0)
         flat = np.where(ok[:, None], flat, 0)
-        stack = flat.reshape(self.n, self.p, self.p).astype(np.float64)
-        out = np.stack([self._scan(stack.sum(axis=1), 0, tot),
-                        self._scan(stack.sum(axis=2), 1, tot)], axis=1)
+        out = self._reading(flat.reshape(self.n, self.p, self.p), tot)
         if self.pupil.observe(flat, ok):
             self._refresh()
-        return self.finish(out, ok)
+        return self.finish(out - drift, ok, drift=False)
+
+    def _reading(self, stack: np.ndarray, tot: np.ndarray | None = None) -> np.ndarray:
+        """``(n, 2)`` block axes, px: the numpy path's shifts of counts ``stack (n, p, p)``
+        (totals ``tot``, or their sums), nothing fed to the calibration."""
+        stack = np.asarray(stack, dtype=np.float64)
+        if tot is None:
+            tot = stack.reshape(self.n, -1).sum(axis=1)
+        return np.stack([self._scan(stack.sum(axis=1), 0, tot),
+                         self._scan(stack.sum(axis=2), 1, tot)], axis=1)
 
     def _scan(self, marg: np.ndarray, axis: int, tot: np.ndarray) -> np.ndarray:
         """numpy path: ``(n,)`` shift along ``axis`` from ``(n, p)`` marginals, the whole grid

@@ -89,7 +89,10 @@ class PupilCalibration:
         trend: fit the average extrapolated, from the drift between it and a second
             average of time constant ``2 time_constant_s``, to the middle of the period the
             refit will serve (True, default: no lag behind a steadily evolving profile, a
-            little more focus noise on a steady one); False: the average itself.
+            little more focus noise on a steady one), and also to its end
+            (``light_drift``), which the estimators follow frame by frame between refits
+            (:meth:`drift_phase`, :meth:`.Centroider._follow_drift`); False: the average
+            itself, held for the period.
         altitude_s: time constant (s) of the estimators' :class:`.altitude.AltitudeTracker`,
             which follows the layer's altitude between refits from the slopes (0: off). The
             calibration only carries the setting; the centroider applies it.
@@ -152,6 +155,9 @@ class PupilCalibration:
         self.flux = None
         self._state_ok = np.zeros(self.n, dtype=bool)
         self.light = self.prior.copy()
+        self.light_drift = None
+        self._drift_at = (0.0, 1.0)              # (frame light is predicted for, frames to light_drift's)
+        self._drift_refs = None                  # (version, counts of light_drift's reference)
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
@@ -291,10 +297,10 @@ class PupilCalibration:
     # -- fit --------------------------------------------------------------------------
     def _take(self) -> tuple:
         """Hand over the accumulators (fresh zero ones stay): ``(acc, count, acc_frame,
-        acc_rows, rows_index, frames since the last take, acc_marg)``."""
+        acc_rows, rows_index, frames since the last take, acc_marg, frames seen)``."""
         snap = (self._acc, self._count, self._acc_frame, self._acc_rows,
                 getattr(self, "_rows_index", None), self._frames - self._taken_at,
-                self._acc_marg)
+                self._acc_marg, self._frames)
         self._acc = np.zeros_like(self._acc)
         self._count = np.zeros_like(self._count)
         if self._acc_frame is not None:
@@ -338,6 +344,7 @@ class PupilCalibration:
             clone.cog_bias()
         if self.want_response:                               # a linearised CoG's
             clone.cog_response()
+        clone.drift_counts()                                 # what _follow_drift reads
         return clone, payload
 
     def _poll(self) -> bool:
@@ -361,7 +368,7 @@ class PupilCalibration:
     def _fit(self, snap: tuple, frames: int) -> bool:
         """Refit from a :meth:`_take` snapshot covering ``frames`` frames; False if it held
         no usable subaperture (nothing changed)."""
-        acc, count, acc_frame, acc_rows, rows_index, _, acc_marg = snap
+        acc, count, acc_frame, acc_rows, rows_index, _, acc_marg, end = snap
         if acc_marg is not None:           # an image with those marginals: outer(rows, cols) / sum
             tot = acc_marg[:, 0].sum(axis=1)
             img = acc_marg[:, 1, :, None] * acc_marg[:, 0, None, :]
@@ -380,7 +387,8 @@ class PupilCalibration:
         z = np.where(good[:, None], proj / np.where(good, tot, 1.0)[:, None], 0.0)
         self._update_blur(mean, good)
         a, a_slow = self._decays(frames)
-        if self.state is None:
+        first = self.state is None
+        if first:
             self.state, self.flux = z, np.where(good, tot, self.sensor.photons)
             self.state_slow = z.copy()
         else:
@@ -393,7 +401,9 @@ class PupilCalibration:
             self.flux[blend] = a * self.flux[blend] + (1 - a) * tot[blend]
             self.flux[fresh] = tot[fresh]
         self._state_ok |= good
-        self.light = self.solve(self._predicted(frames, a, a_slow), self._state_ok, self.light)
+        start, self.light = self.light, self.solve(self._predicted(frames, a, a_slow),
+                                                   self._state_ok, self.light)
+        self._fit_drift(frames, a, a_slow, end, start, first)
         self.fits += 1
         self.version += 1
         self._refs = None
@@ -406,19 +416,54 @@ class PupilCalibration:
         steps = frames / (self.time_constant_s * self.sensor.frame_rate_hz)
         return math.exp(-steps), math.exp(-steps / 2)
 
-    def _predicted(self, frames: int, a: float, a_slow: float) -> np.ndarray:
+    def _fit_drift(self, frames: int, a: float, a_slow: float, end: int, start: np.ndarray,
+                   first: bool) -> None:
+        """With ``trend``: the profile at the end of the period the refit serves
+        (``light_drift``: the same extrapolation ``frames / 2`` frames further, solved from
+        the same ``start`` as ``light``, so that only the data differ), so that the
+        estimators follow the drift between refits (:meth:`drift_phase`); None on the first
+        fit (no drift seen yet) and without ``trend``."""
+        self._drift_at = (end + self.lag + frames / 2, frames / 2)
+        if first or not self.trend or not 0 < a < 1:
+            self.light_drift = None
+            return
+        later = self._predicted(frames, a, a_slow, frames / 2 / self.sensor.frame_rate_hz)
+        self.light_drift = self.solve(later, self._state_ok, start)
+
+    def drift_phase(self, pending: int = 0) -> float:
+        """Where the frame last observed sits between ``light`` (0, the middle of the period
+        the refit serves) and ``light_drift`` (1, its end): -1 on the refit's own frame;
+        ``pending``: frames read but not observed yet (1 for an estimator that reads a
+        frame before it feeds the calibration)."""
+        mid, half = self._drift_at
+        return (self._frames + pending - mid) / half
+
+    def drift_counts(self) -> np.ndarray | None:
+        """``(n, p, p)`` the reference of ``light_drift`` in counts, on the scale of
+        :meth:`counts` (cached per refit), or None without a drift."""
+        if self.light_drift is None:
+            return None
+        if self._drift_refs is None or self._drift_refs[0] != self.version:
+            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
+                              self.light_drift, self.max_shift_px)
+            img = ps.image_at(np.zeros((self.n, 2)))
+            self._drift_refs = (self.version, img * self._to_counts(img))
+        return self._drift_refs[1]
+
+    def _predicted(self, frames: int, a: float, a_slow: float, later_s: float = 0.0) -> np.ndarray:
         """The projected means the fit uses: the average itself, or (``trend``) extrapolated
         to the middle of the period the refit will serve. For a profile drifting linearly,
         an average over periods of ``P`` s that keeps ``a`` of itself each period lags the
         period's end by ``L = P/2 + P a/(1-a)``; two averages (``tau``, ``2 tau``) give the
         drift, ``(state - slow) / (L_slow - L)``, and the profile at the period end plus
-        ``lag`` frames plus ``P/2`` is ``state + drift (L + lag + P/2)``."""
+        ``lag`` frames plus ``P/2`` is ``state + drift (L + lag + P/2)``; ``later_s``
+        seconds further with ``later_s``."""
         if not self.trend or not 0 < a < 1:
             return self.state
         period = frames / self.sensor.frame_rate_hz
         lag = period / 2 + period * a / (1 - a)
         lag_slow = period / 2 + period * a_slow / (1 - a_slow)
-        ahead = lag + self.lag / self.sensor.frame_rate_hz + period / 2
+        ahead = lag + self.lag / self.sensor.frame_rate_hz + period / 2 + later_s
         return self.state + (self.state - self.state_slow) * (ahead / (lag_slow - lag))
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
@@ -622,18 +667,24 @@ class PupilCalibration:
         each subaperture, ``sensor.photons`` before the first fit), background not included;
         ``flux (n,)``."""
         img, dx, dy = self.reference()
-        flux = np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
-        tot = img.reshape(self.n, -1).sum(axis=1)
-        scale = (flux / np.where(tot > 0, tot, 1.0))[:, None, None]   # unit light in the field
-        return img * scale, dx * scale, dy * scale, flux
+        scale = self._to_counts(img)
+        return img * scale, dx * scale, dy * scale, self._flux()
 
     def image_at(self, shift_block: np.ndarray) -> np.ndarray:
         """``(n, p, p)`` noise-free counts of the current reference displaced by
         ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
-        img0 = self.reference_image()
-        flux = np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
+        return self.spots().image_at(shift_block) * self._to_counts(self.reference_image())
+
+    def _flux(self) -> np.ndarray:
+        """``(n,)`` the observed mean flux of each subaperture (``sensor.photons`` before
+        the first fit)."""
+        return np.full(self.n, float(self.sensor.photons)) if self.flux is None else self.flux
+
+    def _to_counts(self, img0: np.ndarray) -> np.ndarray:
+        """``(n, 1, 1)``: what scales images rendered as ``img0 (n, p, p)`` (unit light, the
+        field's share of it) to counts at :meth:`_flux`."""
         tot = img0.reshape(self.n, -1).sum(axis=1)
-        return self.spots().image_at(shift_block) * (flux / np.where(tot > 0, tot, 1.0))[:, None, None]
+        return (self._flux() / np.where(tot > 0, tot, 1.0))[:, None, None]
 
     @property
     def warning(self) -> str:
@@ -700,7 +751,7 @@ def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
               "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum",
-              "_gram", "_rough", "_spread")
+              "_gram", "_rough", "_spread", "light_drift", "_drift_at", "_drift_refs")
 
 # The CoG's response (cog_response): scanned over +-1.4 px per block axis (3 sigma of the
 # shifts a closed loop leaves, 0.46 px rms per axis; a corner, rotated to the detector's
