@@ -172,7 +172,7 @@ class Centroider:
             self._drift = None
             return
         with np.errstate(divide="ignore", invalid="ignore"):
-            moved = np.asarray(read(drifted), dtype=np.float64) - read(self.pupil.counts()[0])
+            moved = np.asarray(read(drifted), dtype=np.float64) - read(self.pupil.reference_counts())
         self._drift = np.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)
 
     def _drift_term(self, pending: int = 0):

@@ -670,6 +670,11 @@ class PupilCalibration:
         scale = self._to_counts(img)
         return img * scale, dx * scale, dy * scale, self._flux()
 
+    def reference_counts(self) -> np.ndarray:
+        """``(n, p, p)``: :meth:`counts`' image alone (no derivative renders)."""
+        img = self.reference_image()
+        return img * self._to_counts(img)
+
     def image_at(self, shift_block: np.ndarray) -> np.ndarray:
         """``(n, p, p)`` noise-free counts of the current reference displaced by
         ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
