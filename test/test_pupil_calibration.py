@@ -144,12 +144,12 @@ def test_trend_follows_a_drifting_profile_without_lag():
 
 
 def _rising_layer_errors(name, options, sensor, frames):
-    """``(frames,)`` radius-weighted mean error along e (px) of estimator ``name`` on
-    noise-free ``frames`` whose truth is zero shift everywhere."""
+    """``((frames,), centroider)``: the radius-weighted mean error along e (px) of estimator
+    ``name`` on noise-free ``frames`` whose truth is zero shift everywhere."""
     lay = geometry.layout(sensor)
     c = table.build(name, sensor, dict(options, pupil_period=6, pupil_time_constant_s=0.4))
     e = np.array([c.centroid(f) for f in frames])
-    return (e * lay.e).sum(axis=-1) @ (lay.r_m / (lay.r_m ** 2).sum())
+    return (e * lay.e).sum(axis=-1) @ (lay.r_m / (lay.r_m ** 2).sum()), c
 
 
 @pytest.mark.parametrize("name,options", [("cog", {"bias": "pupil"}), ("cmf", {}), ("ml", {}), ("corr", {}),
@@ -171,9 +171,12 @@ def test_estimators_follow_the_profile_drift_between_refits(name, options, monke
     # the last whole period: cog and ann take a refit on the frame that completes a period
     # (the 30th), cmf and ml from the next frame on
     last = slice(29, 35) if name not in ("cmf", "ml") else slice(30, 36)
-    err = _rising_layer_errors(name, options, s, frames)[last]
+    err, c = _rising_layer_errors(name, options, s, frames)
+    err = err[last]
+    # the half period's rise, 300 m, in the calibration's description
+    assert 200.0 < c.describe()["pupil_calibration"]["altitude_drift_m"] < 400.0
     monkeypatch.setattr(PupilCalibration, "drift_counts", lambda self: None)
-    still = _rising_layer_errors(name, options, s, frames)[last]
+    still = _rising_layer_errors(name, options, s, frames)[0][last]
     climb = np.ptp(still)
     assert climb > 0.015                          # the spots' move over a period, px
     assert np.ptp(err) < 0.3 * climb              # cog, cmf, ml, ann ~0.1; corr 0.25

@@ -708,12 +708,16 @@ class PupilCalibration:
 
     def describe(self) -> dict:
         h, d = self.profile
+        alt = float(harmonic_altitude(h, d))
+        drift = None                          # the fitted altitude's move to the period's end
+        if self.light_drift is not None:
+            drift = round(float(harmonic_altitude(*node_density(self.nodes_m, self.light_drift))) - alt, 1)
         return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
                 "tilt_blur_px": round(self.blur_px, 3),
                 "time_constant_s": self.time_constant_s, "stride": self.stride,
-                "altitude_s": self.altitude_s,
+                "trend": self.trend, "altitude_s": self.altitude_s,
                 "nodes": int(self.nodes_m.size),
-                "harmonic_altitude_m": round(float(harmonic_altitude(h, d)), 1)}
+                "harmonic_altitude_m": round(alt, 1), "altitude_drift_m": drift}
 
 
 # The normalisation's pull below this (px) is not applied, and the solve stops once the pull
