@@ -431,46 +431,64 @@ def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
     # raw (2p,: 2p - 1 sums and a zero), then each bin the shares[b, q] of sums[b, q] (four
     # slots, unrolled: a loop over them costs 15 %; a gather, no scattered additions
     # waiting on one another); moments (n, 3) float64: total, sum of x, sum of y (pixel
-    # indices from 0). Column and row sums as block_marginals makes them; a diagonal's
-    # through a skewed copy (row i stored i places on, p - 1 - i for anti-diagonals) whose
-    # column sums are the diagonal sums: each addition at the same place every row, not at
-    # overlapping places that stall one another
+    # indices from 0). One read of each block: row i is added into the diagonal sums at
+    # offset i (p - 1 - i for anti-diagonals) of one of two int32 accumulators taken in turn,
+    # so that consecutive rows' overlapping additions do not wait on one another (one
+    # accumulator: +15 %; a skewed float copy summed by columns, the previous pass: +50 %);
+    # a diagonal block's sum of x comes from its diagonal sums, no column sums. Integer sums
+    # throughout (exact: at most 2p x 65535 < 2^31), so the bins do not depend on the order.
     n = origins.shape[0]
     wk = 2 * p
-    # one skewed copy per kind of diagonal: outside each row's span zero for good
-    skews = np.zeros((2, p * wk), dtype=np.float32)
     col = np.zeros(p, dtype=np.int32)
-    marg = np.empty((2, p), dtype=np.float32)
-    no_acc = np.zeros((0, 2, 1))
+    rowsum = np.zeros(p, dtype=np.int32)
+    dacc = np.zeros((2, wk), dtype=np.int32)
     for b in range(n):
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         k = code[b]
-        moments[b, 0] = _block_sums(frame, r0, c0, p, col, marg, no_acc, b)
-        tx = 0                                       # integer chains: no float latency
+        tot = 0
         ty = 0
-        for j in range(p):
-            tx += col[j] * j
-            ty += np.int32(marg[1, j]) * j
-        moments[b, 1] = tx
-        moments[b, 2] = ty
-        if k == 0 or k == 2:                         # columns or rows
+        tx = 0
+        if k == 0 or k == 2:                         # columns or rows: the marginals
             for j in range(p):
-                raw[j] = marg[k // 2, j]
-        else:                                        # the block again, from the cache
-            skew = skews[0] if k == 1 else skews[1]
+                col[j] = 0
             for i in range(p):
                 row = frame[r0 + i, c0:c0 + p]
-                at = i * wk + (i if k == 1 else p - 1 - i)
-                dst = skew[at:at + p]
+                rs = np.int32(0)
                 for j in range(p):
-                    dst[j] = np.float32(row[j])
-            for m in range(wk):                      # 2p columns (the last one zero): no
-                raw[m] = 0.0                         # remainder loop after the vector one
+                    v = np.int32(row[j])
+                    rs += v
+                    col[j] += v
+                rowsum[i] = rs
+                tot += rs
+                ty += rs * i
+            for j in range(p):
+                tx += col[j] * j
+                raw[j] = np.float32(col[j] if k == 0 else rowsum[j])
+        else:                                        # diagonals or anti-diagonals
+            for m in range(wk):
+                dacc[0, m] = 0
+                dacc[1, m] = 0
             for i in range(p):
-                srow = skew[i * wk:(i + 1) * wk]
-                for m in range(wk):
-                    raw[m] += srow[m]
+                row = frame[r0 + i, c0:c0 + p]
+                at = i if k == 1 else p - 1 - i
+                d = dacc[i & 1, at:at + p]
+                rs = np.int32(0)
+                for j in range(p):
+                    v = np.int32(row[j])
+                    rs += v
+                    d[j] += v
+                tot += rs
+                ty += rs * i
+            sm = 0                                   # sum of the diagonal index
+            for m in range(wk):
+                dm = dacc[0, m] + dacc[1, m]
+                raw[m] = np.float32(dm)
+                sm += dm * m
+            tx = sm - ty if k == 1 else sm - (p - 1) * tot + ty
+        moments[b, 0] = tot
+        moments[b, 1] = tx
+        moments[b, 2] = ty
         for q in range(p):
             s = sums[b, q]
             w = shares[b, q]
