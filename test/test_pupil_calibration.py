@@ -85,29 +85,6 @@ def test_tilted_frames_of_truncated_spots_give_the_true_profile():
     assert err[cut].max() < 0.022 and err[~cut].max() < 0.012
 
 
-def test_the_tilt_blur_of_one_period_of_correlated_tilts_is_their_rms():
-    """AR(1) tilts (0.95 a frame, 0.46 px rms per axis, as the accuracy benchmark draws
-    them) over one 140-frame period: each block's tilt takes ~7 independent values, so its
-    across-e variance is skewed and the pupil's median of it falls ~7 % short (blur ~0.43
-    px, which left truncated references ~9 mas short along e at the edge); the pupil mean
-    gives the tilts' rms."""
-    s = SMALL.replace(detector="cartesian")
-    h, d, sm = true_spots(s, "measured")
-    n = geometry.layout(s).n_valid
-    rng = np.random.default_rng(3)
-    cal = PupilCalibration(s, period=140, time_constant_s=0.0)
-    t = rng.normal(0, 0.46, (n, 2))
-    seen = []
-    for _ in range(140):
-        t = 0.95 * t + np.sqrt(1 - 0.95 ** 2) * rng.normal(0, 0.46, (n, 2))
-        seen.append(t)
-        img, _ = sm.images(np.clip(t, -3.4, 3.4))
-        img /= img.reshape(n, -1).sum(1)[:, None, None]
-        cal.observe(img.reshape(n, -1) * 1000.0)
-    rms = float(np.sqrt(np.mean(np.square(seen))))          # the draw's own, ~0.46
-    assert cal.fits == 1 and abs(cal.blur_px - rms) < 0.012
-
-
 def test_noisy_tilted_frames_converge_and_follow_the_average():
     """AR(1) tilts (0.46 px rms, independent) and 1000 photons: 280 frames remove 90 % of the
     CoG bias of a layer far above h_ref."""

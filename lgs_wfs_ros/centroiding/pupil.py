@@ -468,17 +468,17 @@ class PupilCalibration:
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
-        not reach): the pupil mean of the across-e variance about the block centre (the
+        not reach): the pupil median of the across-e variance about the block centre (the
         true centre: each subaperture's mean tilt over the window counts, as the fit sees
-        it; docs/accuracy.md; :func:`_pupil_mean`), inverted through the pixel-integrated
-        core widened by a blur; the basis is rebuilt when it moves by more than 0.05 px."""
+        it; docs/accuracy.md), inverted through the pixel-integrated core widened by a
+        blur; the basis is rebuilt when it moves by more than 0.05 px."""
         if good.sum() < 3:
             return
         m = np.maximum(mean[good], 0.0)
         tot = m.sum(axis=1)
         u = self._u_perp[good]
         var = (m * u * u).sum(axis=1) / tot
-        blur = float(np.interp(_pupil_mean(var), *self._spread_table()))
+        blur = float(np.interp(np.median(var), *self._spread_table()))
         if abs(blur - self.blur_px) > 0.05:
             self.blur_px = blur
             self._basis = None
@@ -719,24 +719,6 @@ class PupilCalibration:
                 "nodes": int(self.nodes_m.size),
                 "harmonic_altitude_m": round(alt, 1), "altitude_drift_m": drift}
 
-
-def _pupil_mean(var: np.ndarray) -> float:
-    """The mean of the blocks' across-e variances ``var (m,)`` px^2, blocks over
-    ``OUTLIER_RATIO`` times the median left out (a hot pixel, a neighbour's light).
-
-    Not the median: over one period a block's tilt takes few independent values (AR(1)
-    residuals at 0.95 a frame: ~7 in 140 frames), so its variance is skewed like a
-    chi-square of few degrees of freedom and the median falls below the mean. Measured on
-    the accuracy benchmark's high layer (cartesian, AR(1), 0.46 px rms): the median gave a
-    blur of 0.430 px, which left the references of the spots the field truncates ~9 mas
-    short along e at the pupil's edge (docs/accuracy.md "The tilt blur")."""
-    keep = var <= OUTLIER_RATIO * np.median(var)
-    return float(np.mean(var[keep]))
-
-
-#: a block whose across-e variance exceeds this times the pupil median is not counted in
-#: the tilt blur (a chi-square of 7 degrees of freedom passes it once in ~1,000)
-OUTLIER_RATIO = 4.0
 
 # The normalisation's pull below this (px) is not applied, and the solve stops once the pull
 # its last iterate implies is within this of the one it used (one solve a refit when steady).
