@@ -391,9 +391,11 @@ def _case(args):
 
 
 def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = False,
-         jobs: int = 1, only: tuple = ()) -> dict:
+         jobs: int = 1, only: tuple = (), seed: int = 0) -> dict:
     """Run the mode's cases; with ``only`` (labels, ``cog`` among them), run those
-    estimators alone and merge them into the mode's stored result (:func:`merge`)."""
+    estimators alone and merge them into the mode's stored result (:func:`merge`). ``seed``
+    draws other frames (another start in the test block, layer, tilts and noise): its
+    results go to their own files (:func:`result_name`), the docs are left alone."""
     t_start = time.time()
     if long:
         warm, scored, cases, labels, t3_frames = 700, 700, quick_cases(), LONG_ESTIMATORS, 0
@@ -401,15 +403,16 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         warm, scored, cases, labels, t3_frames = 210, 140, quick_cases(), QUICK_ESTIMATORS, 1400
     else:
         warm, scored, cases, labels, t3_frames = 700, 700, full_cases(), tuple(ESTIMATORS), 7000
-    name = "accuracy_long" if long else "accuracy"
+    name = result_name(long, seed)
     stored = None
     if only:
         unknown = [lb for lb in only if lb not in ESTIMATORS]
         if unknown or "cog" not in only:
             raise SystemExit(f"--only: labels of ESTIMATORS, cog among them (it checks that the "
                              f"frames are the stored run's); got {', '.join(only)}")
-        stored = json.loads((out_dir / f"{name}.json").read_text())
         labels = tuple(only)
+        if (out_dir / f"{name}.json").is_file():      # else: those alone make the first run
+            stored = json.loads((out_dir / f"{name}.json").read_text())
     what = (f"{warm} warm-up + {scored} scored frames at 700 Hz per case, full pupil "
             f"(2,784 subapertures), photons {', '.join(f'{p:g}' for p in PHOTONS)}, "
             f"side launch {SIDE_LAUNCH_M:g} m off axis, AR(1) tilts {AR1_RHO} per frame "
@@ -420,7 +423,7 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
     out = {"mode": mode, "what": what, "cases": [], "table3": []}
     if stored is not None:
         name += "_only"                                   # partial results beside the stored
-    tasks = [(fam, det, launch, tilt, warm, scored, labels) for fam, det, launch, tilt in cases]
+    tasks = [(fam, det, launch, tilt, warm, scored, labels, seed) for fam, det, launch, tilt in cases]
     if jobs > 1:
         import multiprocessing
         with multiprocessing.get_context("spawn").Pool(jobs) as pool:
@@ -433,7 +436,7 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
             _save(out, out_dir, t_start, name)
     if not long:
         for det in ("polar", "cartesian"):
-            c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels,
+            c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, seed=seed,
                          crb_samples=50, log=log, single=True)
             c["paper_ann_over_cog"] = PAPER_T3[det]
             out["table3"].append(c)
@@ -443,10 +446,17 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         (out_dir / f"{name}.md").unlink(missing_ok=True)
         out = merge(stored, out, labels)
         name = name[:-len("_only")]
+    out["seed"] = seed
     _save(out, out_dir, t_start, name)
-    if not long:
+    if not long and not seed:
         write_docs(out)
     return out
+
+
+def result_name(long: bool, seed: int = 0) -> str:
+    """The stem of a run's json / md in ``benchmarks/``: ``accuracy`` (quick) or
+    ``accuracy_long``, with ``_seed<N>`` for another seed than the tables' 0."""
+    return ("accuracy_long" if long else "accuracy") + (f"_seed{seed}" if seed else "")
 
 
 def _key(c: dict) -> tuple:
@@ -623,12 +633,17 @@ if __name__ == "__main__":
     ap.add_argument("--jobs", type=int, default=1, help="cases run at a time (processes)")
     ap.add_argument("--only", default="", metavar="LABELS",
                     help="comma-separated estimators (cog among them) run alone on the mode's "
-                         "frames and merged into its stored json / md (and docs, quick)")
+                         "frames and merged into its stored json / md (and docs, quick), or "
+                         "written as the first run where none is stored (another --seed)")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
     ap.add_argument("--floors", action="store_true",
                     help="add each stored case's CoG floor (no estimator runs) to the mode's "
                          "json / md (quick: and the docs)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="draw other frames (start in the test block, layer, tilts, noise): "
+                         "results in accuracy[_long]_seed<N>.json / .md, docs left alone "
+                         "(one seed's ratios move by several percent on the high layer)")
     ap.add_argument("--record", default="", metavar="LABEL",
                     help="with --tables-only: write LABEL's (an ann estimator's) per-family "
                          "summary into its model's metadata and the model card")
@@ -654,5 +669,5 @@ if __name__ == "__main__":
             results.write_text(json.dumps(allres, indent=2) + "\n")
     else:
         main(args.quick, long=args.long, jobs=args.jobs,
-             only=tuple(x for x in args.only.split(",") if x))
-    print((HERE / ("accuracy_long.md" if args.long else "accuracy.md")).read_text())
+             only=tuple(x for x in args.only.split(",") if x), seed=args.seed)
+    print((HERE / f"{result_name(args.long, args.seed)}.md").read_text())
