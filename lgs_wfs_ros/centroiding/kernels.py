@@ -440,7 +440,8 @@ def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
     n = origins.shape[0]
     wk = 2 * p
     col = np.zeros(p, dtype=np.int32)
-    rowsum = np.zeros(p, dtype=np.int32)
+    marg = np.empty((2, p), dtype=np.float32)
+    no_acc = np.zeros((0, 2, 1))
     dacc = np.zeros((2, wk), dtype=np.int32)
     for b in range(n):
         r0 = origins[b, 0]
@@ -450,21 +451,11 @@ def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
         ty = 0
         tx = 0
         if k == 0 or k == 2:                         # columns or rows: the marginals
-            for j in range(p):
-                col[j] = 0
-            for i in range(p):
-                row = frame[r0 + i, c0:c0 + p]
-                rs = np.int32(0)
-                for j in range(p):
-                    v = np.int32(row[j])
-                    rs += v
-                    col[j] += v
-                rowsum[i] = rs
-                tot += rs
-                ty += rs * i
-            for j in range(p):
+            tot = _block_sums(frame, r0, c0, p, col, marg, no_acc, b)
+            for j in range(p):                       # integer chains: no float latency
                 tx += col[j] * j
-                raw[j] = np.float32(col[j] if k == 0 else rowsum[j])
+                ty += np.int32(marg[1, j]) * j
+                raw[j] = marg[k // 2, j]
         else:                                        # diagonals or anti-diagonals
             for m in range(wk):
                 dacc[0, m] = 0
