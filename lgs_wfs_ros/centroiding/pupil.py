@@ -468,16 +468,16 @@ class PupilCalibration:
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
-        not reach): the pupil median of the across-e variance about the block centre (the
-        true centre: each subaperture's mean tilt over the window counts, as the fit sees
-        it; docs/accuracy.md), inverted through the pixel-integrated core widened by a
-        blur; the basis is rebuilt when it moves by more than 0.05 px."""
+        not reach): the pupil median of the across-e variance about each block's own mean
+        (its mean tilt over the window is a shift the fit leaves free, :meth:`solve`, not a
+        blur), inverted through the pixel-integrated core widened by a blur; the basis is
+        rebuilt when it moves by more than 0.05 px."""
         if good.sum() < 3:
             return
         m = np.maximum(mean[good], 0.0)
         tot = m.sum(axis=1)
         u = self._u_perp[good]
-        var = (m * u * u).sum(axis=1) / tot
+        var = (m * u * u).sum(axis=1) / tot - ((m * u).sum(axis=1) / tot) ** 2
         blur = float(np.interp(np.median(var), *self._spread_table()))
         if abs(blur - self.blur_px) > 0.05:
             self.blur_px = blur
@@ -499,7 +499,7 @@ class PupilCalibration:
         return self._spread
 
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
-              iterations: int = 3) -> np.ndarray:
+              iterations: int = 6) -> np.ndarray:
         """Light per node ``(K,)`` from unit-light projected means ``z (n, nb)`` of the
         subapertures ``ok (n,)``; ``start`` gives the first field fractions.
 
@@ -508,13 +508,17 @@ class PupilCalibration:
         ``t ~ N(0, s^2)`` along e is, to first order, the blurred spot ``B x`` displaced by
         ``d = -s^2 kappa`` (``kappa = d ln c / dt``, ``c(t)`` the light the field keeps):
         ``(B + d B') x``, with ``B'`` the basis' derivative along e. Without that term the
-        spots the field truncates pull the profile (docs/accuracy.md). ``d`` and the field
-        fractions come from the previous iterate (``start`` first: the last refit's profile,
-        so a steady profile needs one solve; at most ``iterations``, stopping when the pull
-        and the fields' light fractions move by less than ``PULL_TOL_PX`` and
-        ``FRACTION_TOL``); ``d`` is applied where it exceeds ``PULL_TOL_PX``, and kept within
-        +-s (a spot almost out of its field, whose ``kappa`` is large, is beyond a
-        first-order model)."""
+        spots the field truncates pull the profile (docs/accuracy.md).
+
+        Each subaperture's mean tilt over the window moves its mean image along e without
+        saying anything about the profile, so it is left free (:meth:`_free_shift_terms`):
+        only its weighted sum along the altitude's pattern (``r`` from the launch) is held
+        at zero, which fixes the origin. ``d``, the field fractions and the shift directions
+        come from the previous iterate (``start`` first: the last refit's profile, so a
+        steady profile needs one solve; at most ``iterations``, stopping when they move by
+        less than ``PULL_TOL_PX``, ``FRACTION_TOL`` and ``DIRECTION_TOL``); ``d`` is applied
+        where it exceeds ``PULL_TOL_PX``, and kept within +-s (a spot almost out of its
+        field, whose ``kappa`` is large, is beyond a first-order model)."""
         b, db = self.basis, self._dbasis
         k = b.shape[2]
         x = self.prior if start is None else start
@@ -524,28 +528,60 @@ class PupilCalibration:
             base -= flat.T @ flat
         if ok.all():                                         # no copies of the basis
             bo, dbo, zo, cs0, cs1 = b, db, z, self._colsum, self._dcolsum
+            r = self.layout.r_m
         else:
             bo, dbo, zo = b[ok], db[ok], z[ok]
-            cs0, cs1 = self._colsum[ok], self._dcolsum[ok]
+            cs0, cs1, r = self._colsum[ok], self._dcolsum[ok], self.layout.r_m[ok]
         used = None
         for _ in range(iterations):
             d = self._pull(cs0 @ x, cs1 @ x)
             c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
+            g = dbo @ x                                      # (m, nb) the shift's direction
             if used is not None and (np.abs(d - used[0]).max() <= PULL_TOL_PX
-                                     and np.abs(c - used[1]).max() <= FRACTION_TOL):
+                                     and np.abs(c - used[1]).max() <= FRACTION_TOL
+                                     and _turned(g, used[2]) <= DIRECTION_TOL):
                 break                                        # what the last solve used
-            used = d, c
-            gram = base + self._moved_gram(bo, dbo, d)
+            used = d, c, g
+            w = zo * c[:, None]                                                  # (m, nb)
+            gram_free, rhs_free = self._free_shift_terms(bo, dbo, d, g, w, r)
+            gram = base + self._moved_gram(bo, dbo, d) + gram_free
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
-            w = zo * c[:, None]                                                  # (m, nb)
-            rhs = np.einsum("snk,sn->k", bo, w) + np.einsum("snk,sn->k", dbo, w * d[:, None])
+            rhs = (np.einsum("snk,sn->k", bo, w) + np.einsum("snk,sn->k", dbo, w * d[:, None])
+                   + rhs_free)
             x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
         return x / x.sum()
+
+    @staticmethod
+    def _free_shift_terms(b: np.ndarray, db: np.ndarray, d: np.ndarray, g: np.ndarray,
+                          w: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(K, K)`` and ``(K,)``: what leaving each subaperture's shift along e free adds to
+        the normal matrix and right-hand side.
+
+        Subaperture s's data ``w_s (nb,)`` is modelled as ``M_s x + mu_s g_s`` with ``M_s =
+        B_s + d_s B'_s`` (``b``, ``db``: ``(m, nb, K)``), ``g_s (nb,)`` the model's
+        derivative along e and ``mu_s`` its mean tilt (px), subject to ``sum_s r_s |g_s|^2
+        mu_s = 0`` (the tilts' information-weighted pattern along ``r e`` is zero: what
+        fixes the profile's altitude, docs/accuracy.md). Minimising over ``mu`` (variable
+        projection) leaves a quadratic in ``x``: each residual loses its component along
+        ``u_s = g_s/|g_s|`` (``- V^T V``, ``V_s = M_s^T u_s``) and the constraint gives it
+        back along the altitude's pattern (``+ Q Q^T / A``, ``Q = sum_s r_s |g_s| V_s``,
+        ``A = sum_s r_s^2 |g_s|^2``): two rank-``m`` products, no model copy."""
+        norm = np.sqrt(np.einsum("sn,sn->s", g, g))
+        live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+        u = np.where(live[:, None], g / np.where(live, norm, 1.0)[:, None], 0.0)
+        v = np.einsum("snk,sn->sk", b, u) + d[:, None] * np.einsum("snk,sn->sk", db, u)
+        uw = np.einsum("sn,sn->s", u, w)
+        q = r * norm
+        a = max(float(q @ q), 1e-300)
+        qv = q @ v
+        gram = np.outer(qv, qv) / a - v.T @ v
+        rhs = qv * (q @ uw) / a - v.T @ uw
+        return gram, rhs
 
     def _pull(self, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
         """``(m,)`` px: the normalisation's first-order pull ``-s^2 c'/c`` along e from the
@@ -720,10 +756,20 @@ class PupilCalibration:
                 "harmonic_altitude_m": round(alt, 1), "altitude_drift_m": drift}
 
 
+def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
+    """The largest change of direction (1 - cosine) between two sets of shift directions
+    ``(m, nb)``, per row."""
+    dot = np.einsum("sn,sn->s", g, g_used)
+    nn = np.sqrt(np.einsum("sn,sn->s", g, g) * np.einsum("sn,sn->s", g_used, g_used))
+    live = nn > 0
+    return float(np.max(1.0 - dot[live] / nn[live], initial=0.0))
+
+
 # The normalisation's pull below this (px) is not applied, and the solve stops once the pull
 # its last iterate implies is within this of the one it used (one solve a refit when steady).
 PULL_TOL_PX = 1e-3
 FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
+DIRECTION_TOL = 1e-6     # nor do the subapertures' shift directions (1 - cosine)
 
 #: how many sets of projected thin-layer spots :func:`shared_hats` keeps (130 MB for the
 #: full cartesian pupil: 2 x 2,784 blocks x 23 bins x 120 nodes)
