@@ -20,15 +20,16 @@ Method (plain numpy, vectorised over subapertures; docs/accuracy.md):
    truncation at the field edge): ``z_s c_s = B_s x``, ``c_s = 1^T B_s x`` the fraction
    of the light inside subaperture s's field (iterated), with a light second-difference
    smoothing. ``x`` is the light per layer: the profile. ``B`` is blurred by the tilts
-   (their spread about the true centre), and each truncated spot's model is moved by the
-   pull of the per-frame normalisation (:meth:`PupilCalibration.solve`).
+   (their spread about each block's mean), each truncated spot's model is moved by the
+   pull of the per-frame normalisation, and each block's mean tilt along e is a free
+   shift (:meth:`PupilCalibration.solve`).
 4. From ``x``: each subaperture's noise-free reference (:class:`.model_spot.ProfileSpots`,
    rendered exactly, with exact derivatives) and the CoG bias it implies (the CoG of that
    reference: what a plain CoG reads for a spot at the true centre).
 
-What fixes the origin: the fit puts the profile where the pupil-mean images are, i.e. it
-assumes the tilts averaged over the window carry no pupil-wide pattern ``proportional to
-r along e`` from the launch. That pattern is focus (for a centre launch) and is exactly a
+What fixes the origin: the blocks' free shifts are held to no pupil-wide pattern
+``proportional to r along e`` from the launch, i.e. the fit assumes the tilts averaged over
+the window carry none. That pattern is focus (for a centre launch) and is exactly a
 change of the profile's altitude: an LGS cannot tell them apart, and LGS AO takes focus
 from a natural-guide-star sensor. Everything else (tip, tilt, higher modes, independent
 tilts) averages out or shows up as residual.
