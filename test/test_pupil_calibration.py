@@ -106,7 +106,7 @@ def test_each_subapertures_lasting_tilt_is_left_free(family):
     flat = img.reshape(n, -1)
     cal = PupilCalibration(s, period=1)
     cal.observe(flat / flat.sum(axis=1, keepdims=True) * 1000.0)
-    assert cal.blur_px == 0.0                       # a lasting shift is no blur
+    assert cal.blur_px < 0.1                        # shifts along e only: no blur across it
     err = cal.cog_bias() - cog_block(sm.images(np.zeros((n, 2)))[0])
     assert np.sqrt(np.mean(err ** 2)) < 0.007
 

@@ -20,7 +20,7 @@ Method (plain numpy, vectorised over subapertures; docs/accuracy.md):
    truncation at the field edge): ``z_s c_s = B_s x``, ``c_s = 1^T B_s x`` the fraction
    of the light inside subaperture s's field (iterated), with a light second-difference
    smoothing. ``x`` is the light per layer: the profile. ``B`` is blurred by the tilts
-   (their spread about each block's mean), each truncated spot's model is moved by the
+   (their spread about the block centre), each truncated spot's model is moved by the
    pull of the per-frame normalisation, and each block's mean tilt along e is a free
    shift (:meth:`PupilCalibration.solve`).
 4. From ``x``: each subaperture's noise-free reference (:class:`.model_spot.ProfileSpots`,
@@ -469,16 +469,17 @@ class PupilCalibration:
 
     def _update_blur(self, mean: np.ndarray, good: np.ndarray) -> None:
         """Tilt blur of the mean images from their spread across e (where the profile does
-        not reach): the pupil median of the across-e variance about each block's own mean
-        (its mean tilt over the window is a shift the fit leaves free, :meth:`solve`, not a
-        blur), inverted through the pixel-integrated core widened by a blur; the basis is
-        rebuilt when it moves by more than 0.05 px."""
+        not reach): the pupil median of the across-e variance about the block centre (the
+        true centre: each subaperture's mean tilt over the window counts; about each
+        block's own mean, the period's spread falls short of the one the fitted average
+        holds, docs/accuracy.md), inverted through the pixel-integrated core widened by a
+        blur; the basis is rebuilt when it moves by more than 0.05 px."""
         if good.sum() < 3:
             return
         m = np.maximum(mean[good], 0.0)
         tot = m.sum(axis=1)
         u = self._u_perp[good]
-        var = (m * u * u).sum(axis=1) / tot - ((m * u).sum(axis=1) / tot) ** 2
+        var = (m * u * u).sum(axis=1) / tot
         blur = float(np.interp(np.median(var), *self._spread_table()))
         if abs(blur - self.blur_px) > 0.05:
             self.blur_px = blur
