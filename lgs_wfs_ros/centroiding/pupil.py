@@ -31,8 +31,8 @@ What fixes the origin: the blocks' free shifts are held to no pupil-wide pattern
 ``proportional to r along e`` from the launch, i.e. the fit assumes the tilts averaged over
 the window carry none. That pattern is focus (for a centre launch) and is exactly a
 change of the profile's altitude: an LGS cannot tell them apart, and LGS AO takes focus
-from a natural-guide-star sensor. Everything else (tip, tilt, higher modes, independent
-tilts) averages out or shows up as residual.
+from a natural-guide-star sensor. Everything else along e (tip, tilt, higher modes,
+independent tilts) is each block's free shift; across e it drops out of the projection.
 """
 
 from __future__ import annotations
