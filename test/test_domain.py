@@ -12,8 +12,9 @@ from onnx import helper
 
 from lgs_wfs_ros.centroiding import make_centroider, options
 from lgs_wfs_ros.centroiding import domain as dom
-from lgs_wfs_ros.learning import domains, export, recipes
-from lgs_wfs_ros.optics import geometry
+from lgs_wfs_ros.learning import domains, export, recipes, refdata
+from lgs_wfs_ros.optics import geometry, sodium
+from lgs_wfs_ros.optics.spots import SpotModel
 from lgs_wfs_ros.sensor import Sensor
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -122,3 +123,64 @@ def test_every_model_file_declares_the_domain_its_training_recorded(where):
             assert meta["lgs_wfs.domain"] == domains.recipe_domain(recipes.get(name),
                                                                    meta.get("lgs_wfs.training"))
         assert stored["input"] in dom.INPUT_KINDS
+
+
+def test_profile_moments_read_a_gaussian_layers_centroid_and_fwhm():
+    h = np.linspace(60e3, 130e3, 2801)
+    for centre, fwhm in ((95e3, 10e3), (102e3, 2.5e3)):
+        c, f = dom.profile_moments(h, sodium.gaussian_profile(h, centre, fwhm))
+        assert c == pytest.approx(centre / 1e3, abs=0.01) and f == pytest.approx(fwhm / 1e3, rel=0.01)
+
+
+def test_check_profile_names_each_range_the_profile_leaves():
+    h = np.linspace(60e3, 130e3, 2801)
+    d = {"profile_centroid_km": [84.0, 100.5], "profile_fwhm_km": [3.0, 19.5]}
+    assert dom.check_profile(d, h, sodium.gaussian_profile(h, 92e3, 9e3), "m").ok
+    high = dom.check_profile(d, h, sodium.gaussian_profile(h, 103e3, 9e3), "m")
+    assert [r.split(";")[0] for r in high.reasons] == [
+        "m was trained on sodium profiles of centroid 84-100.5 km"]
+    assert "103.0 km" in high.reasons[0]
+    thin = dom.check_profile(d, h, sodium.gaussian_profile(h, 92e3, 1.5e3), "m")
+    assert len(thin.reasons) == 1 and "FWHM 3-19.5 km" in thin.reasons[0]
+    assert dom.check_profile({"radius_m": [0, 1]}, h, sodium.gaussian_profile(h, 92e3, 9e3)) is None
+
+
+def test_reference_models_declare_the_spread_of_their_training_profiles():
+    """The profile ranges are the central 98 % of the training prior's draws (double peaks and
+    sporadic layers reach beyond the main layer's nominal 85-100 km, 3-20 km)."""
+    got = domains.profile_ranges(refdata.MARGINAL_SPEC)
+    assert 83.0 < got["profile_centroid_km"][0] < 85.0 and 100.0 < got["profile_centroid_km"][1] < 102.0
+    assert 2.5 < got["profile_fwhm_km"][0] < 3.5 and 18.5 < got["profile_fwhm_km"][1] < 20.5
+    for name in ("ann_ref", "ann_marg", "ann_hyper", "ann_conv", "ann_grid"):
+        stored = export.read_metadata(MODELS / f"{name}.onnx")["lgs_wfs.domain"]
+        assert {k: stored[k] for k in dom.PROFILE_KEYS} == got, name
+
+
+@pytest.mark.parametrize("family,reason", [("measured", None), ("high", "centroid 84-100.5 km"),
+                                           ("narrow", "FWHM 3-19.5 km")])
+def test_a_network_says_when_the_calibrated_sky_leaves_its_training_profiles(family, reason):
+    """The default polar ann (ann_conv) on a small pupil, refitted on three frames of an
+    unseen family: the calibrated profile is checked against the model's profile ranges at
+    each install of references; outside, describe() carries the reason and the count and
+    the centroider's notice says it (a node logs each change)."""
+    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="polar")
+    lay = geometry.layout(sensor)
+    h, d = sodium.unseen_profiles(family, 1, 700.0, seed=2)
+    sm = SpotModel(sensor, lay.r_m, lay.e, h, d[0], max_shift_px=3.5)
+    rng = np.random.default_rng(0)
+    c = make_centroider("ann", sensor, pupil_period=3)
+    first = c.describe()["domain"]["profile"]              # the calibration's prior: inside
+    assert first["inside"] and first["checked"] == 1 and c.notice == ""
+    for _ in range(3):
+        c.centroid(rng.poisson(sm.images(rng.normal(0, 0.3, (lay.n_valid, 2)))[0] * 1000.0)
+                   .astype(float))
+    desc = json.loads(json.dumps(c.describe()))
+    prof = desc["domain"]["profile"]
+    truth_c, truth_f = dom.profile_moments(h, d[0])
+    print(family, prof, "truth", round(truth_c, 2), round(truth_f, 2))
+    assert prof["checked"] == 2 and abs(prof["centroid_km"] - truth_c) < 2.0
+    if reason is None:
+        assert prof["inside"] and prof["outside"] == 0 and c.notice == "" and "warning" not in desc
+    else:
+        assert not prof["inside"] and prof["outside"] == 1
+        assert reason in c.notice and c.notice in desc["warning"]

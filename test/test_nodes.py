@@ -605,6 +605,41 @@ def test_repeated_frame_queue_changes_keep_a_multithreaded_executor_spinning(ros
     assert node._frame_sub.event_handlers == []
 
 
+def test_a_centroider_notice_is_announced_once_each_time_it_changes(centroider):
+    """A centroider's notice (a network's calibrated sky leaving its training profiles, set
+    at a refit) is republished on the centroider topic once when it appears, not again while
+    it stays, and once more when it clears."""
+    node, rig = centroider
+    real = node.centroider
+
+    class Noticing:                       # the node's centroider, with a notice set here
+        notice = ""
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    fake = Noticing()
+    with node._lock:
+        node.centroider = fake
+    frame = small_frame(SMALL, 0)
+
+    def send_and_settle(stamps):
+        for st in stamps:
+            rig.send(frame, st)
+        assert wait_for(lambda: all(st in rig.slopes for st in stamps), timeout=10)
+        time.sleep(0.3)
+
+    before = len(rig.descriptions)
+    send_and_settle([1, 2])
+    assert len(rig.descriptions) == before                   # no notice: nothing announced
+    fake.notice = "sky outside the training profiles"
+    send_and_settle([3, 4, 5])
+    assert [d["reason"] for d in rig.descriptions[before:]] == ["notice"]
+    fake.notice = ""
+    send_and_settle([6, 7])
+    assert [d["reason"] for d in rig.descriptions[before:]] == ["notice", "notice cleared"]
+
+
 def test_a_frame_publisher_the_node_cannot_hear_is_warned_of_once(ros):
     """The frame queues have no incompatible-QoS handler (see above), so the centroider
     checks the frame publishers itself: a best-effort one (a camera driver's sensor-data

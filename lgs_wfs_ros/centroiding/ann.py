@@ -590,6 +590,8 @@ class ANN(Centroider):
             self.folded = self._fold()
         if self.marginals:
             kernels.warm_up()
+        self._sky = None                 # the calibrated profile against the model's (domain.ProfileCheck)
+        self._sky_refits = [0, 0]        # profiles checked (each install), and found outside
         if self.pupil is not None:
             if self._bins is not None:     # the solve's CoG response, off the frame path too
                 self.pupil.want_response = True
@@ -621,7 +623,7 @@ class ANN(Centroider):
 
     # what taking the calibration's references sets (see _prepare_reference)
     _INSTALL_STATE = ("_bins", "_bins_q", "_window", "cond", "_moved", "_offset", "_response", "_ab",
-                      "_projector", "_drift")
+                      "_projector", "_drift", "_sky")
 
     def _install_reference(self) -> None:
         """Take the calibration's current references (:meth:`_take_reference`): what a
@@ -632,6 +634,9 @@ class ANN(Centroider):
         for stale in ("_cond_rows", "_ab"):      # remade from the new references when needed
             self.__dict__.pop(stale, None)
         self.__dict__.update({k: v for k, v in payload.items() if k != "version"})
+        if self._sky is not None:
+            self._sky_refits[0] += 1
+            self._sky_refits[1] += not self._sky.ok
 
     def _prepare_reference(self, calibration) -> dict:
         """The attributes :meth:`_take_reference` sets for ``calibration``, made by a shallow
@@ -662,6 +667,8 @@ class ANN(Centroider):
             self._response = self._along_response()
         if self._offset is not None:
             self._follow_drift(self._drift_reading)
+        self._sky = model_domain.check_profile(self._domain_record, *self.pupil.profile,
+                                               self.model_name)
 
     def _moved_sets(self) -> tuple:
         """``(filters (n, S, K, p), fbias (n, S, K), less (n, S), cbias (n,))`` of option
@@ -1122,6 +1129,11 @@ class ANN(Centroider):
         if self.domain.reasons:
             d["warning"] = (f"{self.domain.count} of {self.n} subapertures outside {self.model_name}'s "
                             "training domain (run with out_of_domain = warn): " + "; ".join(self.domain.reasons))
+        if self._sky is not None:
+            d["domain"]["profile"] = {**self._sky.summary(), "checked": self._sky_refits[0],
+                                      "outside": self._sky_refits[1]}
+            if self.notice:
+                d["warning"] = "; ".join(w for w in (d.get("warning"), self.notice) if w)
         if self._bins is not None:       # a marginals model on a cartesian detector
             d["bins_window"] = {"kind": self.meta["bins_window"],
                                 "moved_subapertures": int(np.count_nonzero(self._window))}
@@ -1129,6 +1141,21 @@ class ANN(Centroider):
         if self.pupil is not None:
             pupil_cal.describe_into(d, self.pupil)
         return d
+
+    @property
+    def notice(self) -> str:
+        """The sky outside the model's training profiles, as the last refit calibrated it
+        ('' inside, or for a model that declares none): :func:`.domain.check_profile`'s
+        reasons. It changes only at a refit; a node logs each change once."""
+        if self._sky is None or self._sky.ok:
+            return ""
+        return ("the calibrated sky is outside the network's training profiles (it runs, "
+                "extrapolating): " + "; ".join(self._sky.reasons))
+
+    @property
+    def _domain_record(self) -> dict | None:
+        """The model's parsed ``lgs_wfs.domain`` (None: not declared)."""
+        return model_domain.parse(self.meta["domain"])
 
     @property
     def model_name(self) -> str:

@@ -266,6 +266,13 @@ class Centroider:
     def reset(self) -> None:
         """Forget any state kept between frames (no-op for stateless algorithms)."""
 
+    @property
+    def notice(self) -> str:
+        """What the estimator learned while running that its user should hear ('' for
+        nothing): e.g. a network's sky outside its training profiles. A node logs each
+        change once and republishes :meth:`describe`."""
+        return ""
+
     def describe(self) -> dict:
         """JSON-able description for the node's ``centroider`` topic."""
         return {"algorithm": self.name, "options": _jsonable(self.options),

@@ -13,11 +13,23 @@ ONNX metadata key ``lgs_wfs.domain`` (a JSON object):
                    ``"image+reference"`` (pixels and the subaperture's current reference)
 ``e_angle_deg``    optional ``[lo, hi]``: angle of the elongation in detector axes, degrees, for
                    cartesian single-subaperture models (a cartesian network sees e's direction)
+``profile_centroid_km``  optional ``[lo, hi]``: the training profiles' centroid altitudes, km
+                   (models that read the pupil calibration's reference: the sky is checked
+                   against it at each refit, :func:`check_profile`)
+``profile_fwhm_km``      optional ``[lo, hi]``: their widths, km, as FWHM = 2.355 x the rms
+                   width (the training prior's own measure of a width, ``learning/refdata.py``)
 =================  ================================================================================
 
 :func:`check` returns a :class:`DomainCheck`: which subapertures are outside, and why. The
 centroider (:class:`.ann.ANN`) refuses a sensor with any out-of-domain subaperture unless
 its option ``out_of_domain`` is ``"warn"``, and then reports the count in ``describe()``.
+
+The sky is checked too, where a model declares the profiles it was trained on and reads the
+pupil calibration's reference: after each refit the calibrated profile's centroid and width
+are compared with those ranges (:func:`check_profile`). A sky cannot be refused (it changes
+under a running node), so a profile outside them is a warning in ``describe()`` and the
+count of refits that found it so; the node logs it once each time the sky leaves the
+domain, and again when it is back.
 
 Photons are reported but never refuse: the pixel input is normalised by its total, so a
 network trained at one level runs at another with that level's noise (the paper applies its
@@ -36,9 +48,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..optics import geometry
+from ..optics import geometry, sodium
+from ..optics.gaussian_spot import FWHM_PER_SIGMA
 
 INPUT_KINDS = ("image", "image+e", "image+e_r", "image+reference", "marginals+reference")
+PROFILE_KEYS = ("profile_centroid_km", "profile_fwhm_km")
 RADIUS_TOL_M = 1e-3           # float slack on the radius range (layout radii are rounded sums)
 ANGLE_TOL_DEG = 0.5
 
@@ -89,7 +103,7 @@ def parse(raw) -> dict | None:
     for key in ("radius_m", "detector", "input"):
         if key not in d:
             raise ValueError(f"ann: metadata lgs_wfs.domain lacks {key!r}")
-    for key in ("radius_m", "photons", "e_angle_deg"):
+    for key in ("radius_m", "photons", "e_angle_deg", *PROFILE_KEYS):
         v = d.get(key)
         if v is None:
             continue
@@ -169,4 +183,55 @@ def check(domain: dict | None, sensor, model: str = "model", input_kind: str | N
     return DomainCheck(True, out, reasons, warnings)
 
 
-__all__ = ["INPUT_KINDS", "DomainCheck", "parse", "check"]
+def profile_moments(altitude_m, density) -> tuple[float, float]:
+    """``(centroid_km, fwhm_km)`` of a sodium profile: ``density (K,)`` (any scale) on
+    ``altitude_m (K,)`` ascending, m; the width as FWHM = 2.355 x the rms width (a Gaussian
+    layer's FWHM; the measure the training prior draws widths in)."""
+    c = sodium.centroid_altitude(altitude_m, density)
+    w = sodium.rms_width(altitude_m, density)
+    return float(c) / 1e3, float(w) * FWHM_PER_SIGMA / 1e3
+
+
+@dataclass
+class ProfileCheck:
+    """A calibrated profile against a model's profile ranges.
+
+    Attributes:
+        centroid_km, fwhm_km: the profile's centroid altitude and width (km).
+        reasons: one sentence per range it falls outside (empty: inside).
+    """
+
+    centroid_km: float
+    fwhm_km: float
+    reasons: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.reasons
+
+    def summary(self) -> dict:
+        """JSON-able record for ``describe()``."""
+        return {"centroid_km": round(self.centroid_km, 2), "fwhm_km": round(self.fwhm_km, 2),
+                "inside": self.ok, "reasons": list(self.reasons)}
+
+
+def check_profile(domain: dict | None, altitude_m, density, model: str = "model") -> ProfileCheck | None:
+    """The profile ``density (K,)`` on ``altitude_m (K,)`` m (the pupil calibration's) against
+    ``domain``'s ``profile_centroid_km`` and ``profile_fwhm_km`` (:func:`parse`'s record);
+    None when the domain declares neither. A range is ``[lo, hi]`` km, ends included."""
+    if domain is None or not any(domain.get(k) is not None for k in PROFILE_KEYS):
+        return None
+    centroid, fwhm = profile_moments(altitude_m, density)
+    reasons = []
+    for key, value, what in (("profile_centroid_km", centroid, "centroid"),
+                             ("profile_fwhm_km", fwhm, "FWHM")):
+        rng = domain.get(key)
+        if rng is not None and not (rng[0] <= value <= rng[1]):
+            reasons.append(f"{model} was trained on sodium profiles of {what} "
+                           f"{describe_range(rng[0], rng[1], 'km')}; the calibrated profile's is "
+                           f"{value:.1f} km")
+    return ProfileCheck(centroid, fwhm, reasons)
+
+
+__all__ = ["INPUT_KINDS", "PROFILE_KEYS", "DomainCheck", "ProfileCheck", "parse", "check",
+           "check_profile", "profile_moments"]

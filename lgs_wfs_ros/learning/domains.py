@@ -9,11 +9,13 @@ got theirs: ``python -m lgs_wfs_ros.learning.domains models models/paper_prior``
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from ..centroiding import domain
 from ..optics import geometry
 from ..sensor import Sensor
 from . import export, recipes, refdata
@@ -60,10 +62,32 @@ def recipe_domain(rec: recipes.Recipe, training: dict | None = None) -> dict:
     return dom
 
 
+#: the share of the prior's draws each declared profile range leaves out at each end
+PROFILE_TAIL = 0.01
+PROFILE_DRAWS = 4000
+
+
+@functools.lru_cache(maxsize=4)
+def profile_ranges(prior: refdata.PriorSpec) -> dict:
+    """``{"profile_centroid_km": [lo, hi], "profile_fwhm_km": [lo, hi]}``: the central 98 %
+    of ``PROFILE_DRAWS`` profiles of ``prior`` (a fixed draw), rounded outward to 0.1 km.
+    The draws' own spread, not the prior's nominal ranges: double peaks and sporadic layers
+    move a profile's centroid and width beyond the ranges its main layer is drawn in.
+    Cached (~2 s a draw); callers must not mutate the result's lists."""
+    prof = refdata.broad_profiles(np.random.default_rng(0), PROFILE_DRAWS, prior)
+    out = {}
+    for key, values in zip(domain.PROFILE_KEYS, zip(*(domain.profile_moments(refdata.GRID, p)
+                                                      for p in prof))):
+        lo, hi = np.quantile(values, [PROFILE_TAIL, 1.0 - PROFILE_TAIL])
+        out[key] = [float(np.floor(lo * 10) / 10), float(np.ceil(hi * 10) / 10)]
+    return out
+
+
 def reference_domain(rec: recipes.Recipe, prior: refdata.PriorSpec = refdata.PriorSpec()) -> dict:
     """The domain of a reference-reading recipe: the ranges its pairs were drawn from."""
     return {"radius_m": list(prior.radius_m), "detector": ["cartesian", "polar"],
             "photons": list(prior.photons), "profile_prior": prior.describe(),
+            **{k: list(v) for k, v in profile_ranges(prior).items()},
             "input": "image+reference",
             "reference": "the spot of the sodium profile estimated by the pupil calibration "
                          "(centroiding/pupil.py), trained with stale, node-sampled, noisy references"}

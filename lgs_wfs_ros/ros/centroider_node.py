@@ -103,6 +103,7 @@ class CentroiderNode(Node):
         self._sensor_received = False
         self._next_picture = 0.0
         self._last_line = ""
+        self._notice = ""        # the centroider's notice last announced (Centroider.notice)
         self.sensor = self._initial_sensor()
         self.layout = geometry.layout(self.sensor)
         self.centroider = None
@@ -204,6 +205,7 @@ class CentroiderNode(Node):
             desc = self.centroider.describe()
         except Exception as exc:  # describe() must never take the node down
             desc = {"algorithm": self.get_parameter("algorithm").value, "error": str(exc)}
+        self._notice = self.centroider.notice
         desc.update(reason=why, time_ns=time.time_ns(), sensor_grid=self.sensor.grid)
         self._desc_pub.publish(String(data=json.dumps(desc, default=str)))
         self.get_logger().info(f"centroider: {desc.get('algorithm')} ({why})")
@@ -343,9 +345,18 @@ class CentroiderNode(Node):
             return
         if len(batch) > 1 and np.prod(self.sensor.frame_shape) <= BATCH_PIXELS:
             self._publish(self._centroid(batch))
-            return
-        for frame in batch:
-            self._publish(self._centroid([frame]))
+        else:
+            for frame in batch:
+                self._publish(self._centroid([frame]))
+        self._follow_notice()
+
+    def _follow_notice(self) -> None:
+        """Republish the description, and log it once, when the centroider's notice
+        changes (e.g. a network's calibrated sky leaving its training profiles, or coming
+        back, at a refit)."""
+        centroider = self.centroider
+        if centroider is not None and centroider.notice != self._notice:
+            self._announce("notice" if centroider.notice else "notice cleared")
 
     def _centroid(self, batch) -> list:
         """``[(stamp_ns, slope grid)]`` of ``[(stamp_ns, image)]``; a frame the algorithm
