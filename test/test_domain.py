@@ -183,4 +183,33 @@ def test_a_network_says_when_the_calibrated_sky_leaves_its_training_profiles(fam
         assert prof["inside"] and prof["outside"] == 0 and c.notice == "" and "warning" not in desc
     else:
         assert not prof["inside"] and prof["outside"] == 1
-        assert reason in c.notice and c.notice in desc["warning"]
+        assert reason in c.notice and "km" not in c.notice.split(reason)[1]   # no value: stable
+        assert reason in desc["warning"] and "the calibrated profile's is" in desc["warning"]
+
+
+def test_replay_records_the_notice_once_when_the_sky_leaves_the_training_profiles(tmp_path):
+    """Replay does what the node does: the description again, with reason notice, on the
+    frame whose refit found the sky outside the network's training profiles, and not at the
+    next refit that finds it outside again (the notice names the range, not the value)."""
+    from lgs_wfs_ros.analysis.bagload import read_json_topic
+    from lgs_wfs_ros.analysis.bagwrite import ContractBagWriter
+    from lgs_wfs_ros.analysis.replay import replay_bag
+    from lgs_wfs_ros.bags import BagReader
+
+    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="polar")
+    lay = geometry.layout(sensor)
+    h, d = sodium.unseen_profiles("high", 1, 700.0, seed=2)
+    sm = SpotModel(sensor, lay.r_m, lay.e, h, d[0], max_shift_px=3.5)
+    rng = np.random.default_rng(0)
+    path = tmp_path / "high.mcap"
+    with ContractBagWriter(path, sensor) as w:
+        for k in range(7):                     # refits at frames 3 and 6: outside at both
+            img = rng.poisson(sm.images(rng.normal(0, 0.3, (lay.n_valid, 2)))[0] * 1000.0)
+            w.frame(k + 1, geometry.stack_to_frame(img.astype(np.uint16), lay))
+    res = replay_bag(path, ["ann"], out=tmp_path / "r.mcap", quiet=True,
+                     options={"ann": {"pupil_period": 3}})
+    with BagReader(res["out"]) as reader:
+        descs = [dd for _, dd in read_json_topic(reader, f"/{res['namespaces']['ann']}/centroider")]
+    assert [dd["reason"] for dd in descs] == ["replay", "notice"]     # not again at frame 6
+    assert descs[0]["domain"]["profile"]["inside"] and not descs[1]["domain"]["profile"]["inside"]
+    assert "centroid 84-100.5 km" in descs[1]["warning"]

@@ -166,12 +166,21 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
                 w.add_topic(f"/{ns}/slopes", IMAGE, qos=VOLATILE)
                 w.add_topic(f"/{ns}/centroider", STRING, qos=TRANSIENT)
             described = False
+            notices = {alg: "" for alg in cents}
+
+            def describe(alg, log, reason):
+                d = dict(cents[alg].describe(), replayed_from=src.name,
+                         options_source=used[alg]["source"], reason=reason)
+                w.write(f"/{spaces[alg]}/centroider", encode_string(_json(d)), log)
+                notices[alg] = cents[alg].notice
+                if reason != "replay" and not quiet:
+                    print(f"{alg}: {d.get('warning', '') if notices[alg] else 'notice cleared'} "
+                          f"(frame {counts['frames']})")
+
             for topic, _, log, pub, cdr in reader.messages():
                 if not described:
-                    for alg, ns in spaces.items():
-                        d = dict(cents[alg].describe(), replayed_from=src.name,
-                                 options_source=used[alg]["source"])
-                        w.write(f"/{ns}/centroider", encode_string(_json(d)), log)
+                    for alg in spaces:
+                        describe(alg, log, "replay")
                     described = True
                 w.write(topic, cdr, log, pub)
                 if topic != names["frame"]:
@@ -186,6 +195,8 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
                 for alg, slopes in results.items():
                     grid = geometry.slopes_to_grid(slopes.astype(np.float32), lay)
                     w.write(f"/{spaces[alg]}/slopes", encode_image(grid, stamp), log, pub)
+                    if cents[alg].notice != notices[alg]:      # as the node: once a change
+                        describe(alg, log, "notice" if cents[alg].notice else "notice cleared")
         except BaseException:
             _discard(w, out)
             raise

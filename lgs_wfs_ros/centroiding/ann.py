@@ -105,6 +105,8 @@ RECENTRE_SETS, RECENTRE_STEP_PX = 5, 0.25
 LINEAR_SETS, LINEAR_STEP_PX, LINEAR_GAIN_SPAN_PX = 9, 0.25, 0.5
 DEFAULT_MODEL = DEFAULT_MODELS["cartesian"]
 META = "lgs_wfs."
+#: how the notice and the warning of a sky outside the training profiles begin
+SKY_OUTSIDE = "the calibrated sky is outside the network's training profiles (it runs, extrapolating): "
 
 
 class ModelNotFoundError(FileNotFoundError, ValueError):
@@ -1132,8 +1134,9 @@ class ANN(Centroider):
         if self._sky is not None:
             d["domain"]["profile"] = {**self._sky.summary(), "checked": self._sky_refits[0],
                                       "outside": self._sky_refits[1]}
-            if self.notice:
-                d["warning"] = "; ".join(w for w in (d.get("warning"), self.notice) if w)
+            if not self._sky.ok:
+                d["warning"] = "; ".join(w for w in (d.get("warning"), SKY_OUTSIDE
+                                                     + "; ".join(self._sky.reasons)) if w)
         if self._bins is not None:       # a marginals model on a cartesian detector
             d["bins_window"] = {"kind": self.meta["bins_window"],
                                 "moved_subapertures": int(np.count_nonzero(self._window))}
@@ -1145,12 +1148,13 @@ class ANN(Centroider):
     @property
     def notice(self) -> str:
         """The sky outside the model's training profiles, as the last refit calibrated it
-        ('' inside, or for a model that declares none): :func:`.domain.check_profile`'s
-        reasons. It changes only at a refit; a node logs each change once."""
+        ('' inside, or for a model that declares none): which ranges it left
+        (:func:`.domain.check_profile`'s limits, without the profile's values, which
+        ``describe()`` carries: the notice changes when the sky leaves a range or comes
+        back, not at every refit while it stays out). A node logs each change once."""
         if self._sky is None or self._sky.ok:
             return ""
-        return ("the calibrated sky is outside the network's training profiles (it runs, "
-                "extrapolating): " + "; ".join(self._sky.reasons))
+        return SKY_OUTSIDE + "; ".join(self._sky.limits)
 
     @property
     def _domain_record(self) -> dict | None:

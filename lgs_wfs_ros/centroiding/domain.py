@@ -198,11 +198,14 @@ class ProfileCheck:
 
     Attributes:
         centroid_km, fwhm_km: the profile's centroid altitude and width (km).
-        reasons: one sentence per range it falls outside (empty: inside).
+        limits: one sentence per range it falls outside, the range alone (empty: inside):
+            the same while the profile stays outside, however it moves there.
+        reasons: each limit with the profile's value.
     """
 
     centroid_km: float
     fwhm_km: float
+    limits: list = field(default_factory=list)
     reasons: list = field(default_factory=list)
 
     @property
@@ -222,15 +225,15 @@ def check_profile(domain: dict | None, altitude_m, density, model: str = "model"
     if domain is None or not any(domain.get(k) is not None for k in PROFILE_KEYS):
         return None
     centroid, fwhm = profile_moments(altitude_m, density)
-    reasons = []
+    limits, reasons = [], []
     for key, value, what in (("profile_centroid_km", centroid, "centroid"),
                              ("profile_fwhm_km", fwhm, "FWHM")):
         rng = domain.get(key)
         if rng is not None and not (rng[0] <= value <= rng[1]):
-            reasons.append(f"{model} was trained on sodium profiles of {what} "
-                           f"{describe_range(rng[0], rng[1], 'km')}; the calibrated profile's is "
-                           f"{value:.1f} km")
-    return ProfileCheck(centroid, fwhm, reasons)
+            limits.append(f"{model} was trained on sodium profiles of {what} "
+                          f"{describe_range(rng[0], rng[1], 'km')}")
+            reasons.append(f"{limits[-1]}; the calibrated profile's is {value:.1f} km")
+    return ProfileCheck(centroid, fwhm, limits, reasons)
 
 
 __all__ = ["INPUT_KINDS", "PROFILE_KEYS", "DomainCheck", "ProfileCheck", "parse", "check",
