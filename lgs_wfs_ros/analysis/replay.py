@@ -117,6 +117,7 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
     "defaults"); frames that cannot be centroided (wrong size, undecodable) get no slopes
     and are counted in ``skipped``.
     """
+    from ..centroiding import notice_of
     from ..centroiding import options as table
 
     algorithms = [a.strip() for a in algorithms if a and a.strip()]
@@ -172,7 +173,7 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
                 d = dict(cents[alg].describe(), replayed_from=src.name,
                          options_source=used[alg]["source"], reason=reason)
                 w.write(f"/{spaces[alg]}/centroider", encode_string(_json(d)), log)
-                notices[alg] = cents[alg].notice
+                notices[alg] = notice_of(cents[alg])
                 if reason != "replay" and not quiet:
                     print(f"{alg}: {d.get('warning', '') if notices[alg] else 'notice cleared'} "
                           f"(frame {counts['frames']})")
@@ -195,8 +196,8 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
                 for alg, slopes in results.items():
                     grid = geometry.slopes_to_grid(slopes.astype(np.float32), lay)
                     w.write(f"/{spaces[alg]}/slopes", encode_image(grid, stamp), log, pub)
-                    if cents[alg].notice != notices[alg]:      # as the node: once a change
-                        describe(alg, log, "notice" if cents[alg].notice else "notice cleared")
+                    if notice_of(cents[alg]) != notices[alg]:      # as the node: once a change
+                        describe(alg, log, "notice" if notice_of(cents[alg]) else "notice cleared")
         except BaseException:
             _discard(w, out)
             raise

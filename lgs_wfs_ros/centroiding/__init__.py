@@ -9,7 +9,7 @@ names; ``crb`` gives the Cramer-Rao bound for an image model.
 from __future__ import annotations
 
 from .ann import ANN, resolve_model
-from .base import Centroider
+from .base import Centroider, notice_of
 from .cmf import CMF, uses_grid
 from .cog import CoG, TCoG, WCoG
 from .correlation import Correlation
@@ -46,6 +46,6 @@ def make_centroider(name: str, sensor, **options) -> Centroider:
         raise ValueError(f"{name}: bad options {options}: {exc}") from exc
 
 
-__all__ = ["ALGORITHMS", "make_centroider", "Centroider", "CoG", "TCoG", "WCoG", "CMF",
+__all__ = ["ALGORITHMS", "make_centroider", "Centroider", "notice_of", "CoG", "TCoG", "WCoG", "CMF",
            "Correlation", "ANN", "ML", "GMF", "GridCMF", "resolve_model", "cog_covariance", "crb", "crb_covariance", "crb_of", "fisher",
            "model_derivatives"]

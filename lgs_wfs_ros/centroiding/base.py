@@ -280,6 +280,12 @@ class Centroider:
                 "n_valid": self.n}
 
 
+def notice_of(centroider) -> str:
+    """``centroider.notice`` ('' for an object without one: a stand-in, or a user's
+    centroider written before notices existed)."""
+    return str(getattr(centroider, "notice", "") or "")
+
+
 def _jsonable(x):
     """Options -> JSON-able values (arrays become lists, paths strings)."""
     if isinstance(x, dict):

@@ -32,7 +32,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from .. import bags
-from ..centroiding import ALGORITHMS, options
+from ..centroiding import ALGORITHMS, notice_of, options
 from ..centroiding.ann import ModelNotFoundError
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
@@ -205,7 +205,7 @@ class CentroiderNode(Node):
             desc = self.centroider.describe()
         except Exception as exc:  # describe() must never take the node down
             desc = {"algorithm": self.get_parameter("algorithm").value, "error": str(exc)}
-        self._notice = self.centroider.notice
+        self._notice = notice_of(self.centroider)
         desc.update(reason=why, time_ns=time.time_ns(), sensor_grid=self.sensor.grid)
         self._desc_pub.publish(String(data=json.dumps(desc, default=str)))
         self.get_logger().info(f"centroider: {desc.get('algorithm')} ({why})")
@@ -355,8 +355,8 @@ class CentroiderNode(Node):
         changes (e.g. a network's calibrated sky leaving its training profiles, or coming
         back, at a refit)."""
         centroider = self.centroider
-        if centroider is not None and centroider.notice != self._notice:
-            self._announce("notice" if centroider.notice else "notice cleared")
+        if centroider is not None and notice_of(centroider) != self._notice:
+            self._announce("notice" if notice_of(centroider) else "notice cleared")
 
     def _centroid(self, batch) -> list:
         """``[(stamp_ns, slope grid)]`` of ``[(stamp_ns, image)]``; a frame the algorithm
