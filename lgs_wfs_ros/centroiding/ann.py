@@ -573,6 +573,7 @@ class ANN(Centroider):
             self.cond = (cname, np.ascontiguousarray(e, dtype=np.float32))
         elif len(inputs) > 1:
             raise ValueError(f"ann: model has inputs {list(inputs)} but lgs_wfs.conditioning is 'none'")
+        self._domain_record = model_domain.parse(self.meta["domain"])     # None: not declared
         self.domain = self._check_domain(options["out_of_domain"])
         self._debias = self._bias_option(options["bias"])
         self.options["bias"] = "pupil" if self._debias else "none"
@@ -884,7 +885,7 @@ class ANN(Centroider):
         if self.meta["input"] == "marginals":
             kind = "marginals+reference"
         name = Path(self.path).stem
-        result = model_domain.check(model_domain.parse(self.meta["domain"]), self.sensor, name, kind)
+        result = model_domain.check(self._domain_record, self.sensor, name, kind)
         if result.reasons and policy == "refuse":
             raise ValueError("ann: sensor outside the model's training domain: " + "; ".join(result.reasons)
                              + " (set ann.out_of_domain = warn to run it anyway)")
@@ -1155,11 +1156,6 @@ class ANN(Centroider):
         if self._sky is None or self._sky.ok:
             return ""
         return SKY_OUTSIDE + "; ".join(self._sky.limits)
-
-    @property
-    def _domain_record(self) -> dict | None:
-        """The model's parsed ``lgs_wfs.domain`` (None: not declared)."""
-        return model_domain.parse(self.meta["domain"])
 
     @property
     def model_name(self) -> str:
