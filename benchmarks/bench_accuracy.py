@@ -611,7 +611,7 @@ def family_summary(cases, label: str) -> dict:
 def record(label: str, model: str, res: dict) -> None:
     """Write ``label``'s per-family summary of ``res`` into model ``model``'s
     ``lgs_wfs.training["accuracy"]`` and rewrite its directory's card (learning/card.py)."""
-    from lgs_wfs_ros.centroiding.ann import resolve_model
+    from lgs_wfs_ros.centroiding.ann_model import resolve_model
     from lgs_wfs_ros.learning import card, export
     path = resolve_model(model)
     tr = export.read_metadata(path).get("lgs_wfs.training", {})

@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     print(md)
     print(json.dumps(res["summary"], indent=1))
     if args.record:
-        from lgs_wfs_ros.centroiding.ann import resolve_model
+        from lgs_wfs_ros.centroiding.ann_model import resolve_model
         from lgs_wfs_ros.learning import card, export
         path = resolve_model(args.model)
         tr = export.read_metadata(path).get("lgs_wfs.training", {})

@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     ap.add_argument("--bias", action="store_true", help="each model less its reading of the "
                     "noise-free reference at the spot's flux (ann's bias: pupil)")
     a = ap.parse_args(argv)
-    from lgs_wfs_ros.centroiding.ann import resolve_model
+    from lgs_wfs_ros.centroiding.ann_model import resolve_model
     paths = [resolve_model(m) for m in a.models]
     print("| family | photons | ml (px) | " + " | ".join(p.stem for p in paths) + " | "
           + " | ".join(f"{p.stem} / ml" for p in paths) + " |")

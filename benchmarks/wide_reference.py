@@ -146,7 +146,7 @@ def load(path):
 
 def validate(wide_path, control_path, spots: int) -> None:
     from marginal_validation import spots as val_spots
-    from lgs_wfs_ros.centroiding.ann import resolve_model
+    from lgs_wfs_ros.centroiding.ann_model import resolve_model
     wide, ctl, conv = load(wide_path), load(control_path), resolve_model("ann_conv")
     print("| family | photons | ann_conv / ml | control / ml | wide / ml | mean error at r > 11 m, px: "
           "ml / ann_conv / control / wide |")

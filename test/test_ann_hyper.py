@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from lgs_wfs_ros.centroiding import ann as ann_mod
+from lgs_wfs_ros.centroiding import ann_model as ann_mod
 from lgs_wfs_ros.centroiding import options
 from lgs_wfs_ros.learning import margtrain, refdata
 from lgs_wfs_ros.optics import geometry

@@ -9,7 +9,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from lgs_wfs_ros.centroiding import make_centroider, options
-from lgs_wfs_ros.centroiding.ann import split_reference
+from lgs_wfs_ros.centroiding.ann_model import split_reference
 from lgs_wfs_ros.learning import reftrain
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor

@@ -10,7 +10,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from lgs_wfs_ros.centroiding import make_centroider
 from lgs_wfs_ros.centroiding import options as table
-from lgs_wfs_ros.centroiding.ann import resolve_model
+from lgs_wfs_ros.centroiding.ann_model import resolve_model
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from spotgen import sodium_line, spots
@@ -163,16 +163,16 @@ def test_model_lookup_by_name(tmp_path, monkeypatch):
     # the default models (ann_conv on polar pixels, ann_grid, read through whole-pixel
     # grid sums, on cartesian ones) ship with the package, so they resolve by name and
     # run inside their domain ...
-    from lgs_wfs_ros.centroiding import ann
+    from lgs_wfs_ros.centroiding import ann, ann_model
     assert ann.DEFAULT_MODELS == {"polar": "ann_conv", "cartesian": "ann_grid"}
     for name in ann.DEFAULT_MODELS.values():
-        assert resolve_model(name) == ann.model_dirs()[0] / f"{name}.onnx"
+        assert resolve_model(name) == ann_model.model_dirs()[0] / f"{name}.onnx"
     for det, name, bins in (("polar", "ann_conv", None), ("cartesian", "ann_grid", "grid")):
         c = make_centroider("ann", Sensor(detector=det))
         assert c.model_name == name and c.describe()["domain"]["out_of_domain_subapertures"] == 0
         assert c.describe().get("bins_projection") == bins
     # ... and where no directory holds them, the error says so (both paths always run)
-    monkeypatch.setattr(ann, "model_dirs", lambda: [tmp_path / "empty"])
+    monkeypatch.setattr(ann_model, "model_dirs", lambda: [tmp_path / "empty"])
     with pytest.raises(ValueError, match="'ann_grid' not found"):
         make_centroider("ann", SENSOR)
     with pytest.raises(ValueError, match="'tiny_cog' not found"):
@@ -183,7 +183,7 @@ def test_folded_normalisation_equals_plain_path(tmp_path):
     """The graph with the sum normalisation folded in gives what dividing in numpy gives,
     on stacks and on frames (every block of the grid, then the valid ones), and bad
     subapertures still come out NaN."""
-    from lgs_wfs_ros.centroiding.ann import TOTAL_OUTPUT, fold_sum_normalisation
+    from lgs_wfs_ros.centroiding.ann_model import TOTAL_OUTPUT, fold_sum_normalisation
     meta = dict(META, conditioning="e_r")
     path = build(tmp_path / "cog.onnx", cog_weights(), meta, cond_width=3)
     folded = fold_sum_normalisation(onnx.load(str(path)), "pixels", 256)
@@ -204,7 +204,7 @@ def test_folded_normalisation_equals_plain_path(tmp_path):
 
 def test_unfoldable_graph_keeps_the_plain_path(tmp_path):
     """A pixel input used by something other than one constant MatMul is not folded."""
-    from lgs_wfs_ros.centroiding.ann import fold_sum_normalisation
+    from lgs_wfs_ros.centroiding.ann_model import fold_sum_normalisation
     path = tmp_path / "relu_first.onnx"
     inputs = [helper.make_tensor_value_info("pixels", TensorProto.FLOAT, ["N", 256])]
     nodes = [helper.make_node("Relu", ["pixels"], ["r"]), helper.make_node("MatMul", ["r", "W"], ["out"])]

@@ -99,7 +99,7 @@ def test_domain_of_a_network_trained_on_both_detectors():
 
 
 def test_marginals_model_must_declare_polar_or_any():
-    from lgs_wfs_ros.centroiding.ann import read_metadata
+    from lgs_wfs_ros.centroiding.ann_model import read_metadata
     base = {"lgs_wfs.pixels": "16", "lgs_wfs.input": '"marginals"', "lgs_wfs.conditioning": '"reference"',
             "lgs_wfs.input_norm": '"none"'}
     for det in ("polar", "any"):

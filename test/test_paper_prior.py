@@ -8,7 +8,7 @@ import onnx
 import pytest
 
 from lgs_wfs_ros.centroiding import make_centroider
-from lgs_wfs_ros.centroiding.ann import resolve_model
+from lgs_wfs_ros.centroiding.ann_model import resolve_model
 from lgs_wfs_ros.learning import recipes
 from lgs_wfs_ros.sensor import Sensor
 

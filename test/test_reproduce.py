@@ -187,8 +187,8 @@ def test_reproduce_runs_the_ann_columns(tmp_path, monkeypatch):
     _cog_onnx(models / "ann_1k.onnx", "polar")
     _cog_onnx(models / "ann_diag.onnx", "cartesian")
     monkeypatch.setenv("LGS_WFS_MODELS", str(models))
-    from lgs_wfs_ros.centroiding import ann
-    monkeypatch.setattr(ann, "model_dirs", lambda: [models])
+    from lgs_wfs_ros.centroiding import ann_model
+    monkeypatch.setattr(ann_model, "model_dirs", lambda: [models])
     cfg = reproduce.Config(photons=(316, 1000), iterations=60, run_seconds=0.1, crb_samples=3,
                            cases=("turbulent", "diagonal"), label="tiny")
     res = reproduce.run(cfg, tmp_path / "out", log=lambda *a: None)

@@ -8,7 +8,8 @@ names; ``crb`` gives the Cramer-Rao bound for an image model.
 
 from __future__ import annotations
 
-from .ann import ANN, resolve_model
+from .ann import ANN
+from .ann_model import resolve_model
 from .base import Centroider, notice_of
 from .cmf import CMF, uses_grid
 from .cog import CoG, TCoG, WCoG

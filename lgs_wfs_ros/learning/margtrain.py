@@ -18,7 +18,7 @@ marginal, ``N`` its total, ``r`` the reference's marginal. Exported (opset 17) a
 
 with ``Wm = p Wd``, ``Wr = p (Wref - Wd)``: the reference enters the first layer once,
 linearly, so the centroider computes ``reference @ Wr`` per calibration refit
-(:func:`..centroiding.ann.split_reference`). Metadata: ``lgs_wfs.input = "marginals"``,
+(:func:`..centroiding.ann_model.split_reference`). Metadata: ``lgs_wfs.input = "marginals"``,
 ``lgs_wfs.conditioning = "reference"``, ``lgs_wfs.detector = "polar"``; one row per
 subaperture.
 """

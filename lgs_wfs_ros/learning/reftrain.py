@@ -11,7 +11,7 @@ block pixel axes. Exported (opset 17) as
 with ``Wp = G Wd`` and ``Wr = G (Wref - Wd)``: the reference enters the first layer only,
 linearly, so the centroider computes ``reference @ Wr`` once per calibration refit and a
 frame costs one ``(n, p*p) x (p*p, h)`` product, like the paper's networks
-(:func:`..centroiding.ann.split_reference`). Metadata: ``lgs_wfs.conditioning =
+(:func:`..centroiding.ann_model.split_reference`). Metadata: ``lgs_wfs.conditioning =
 "reference"``, ``lgs_wfs.output_frame = "block"``, ``lgs_wfs.domain`` (input
 ``image+reference``).
 """

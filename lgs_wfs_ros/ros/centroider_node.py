@@ -33,7 +33,7 @@ from std_msgs.msg import String
 
 from .. import bags
 from ..centroiding import ALGORITHMS, notice_of, options
-from ..centroiding.ann import ModelNotFoundError
+from ..centroiding.ann_model import ModelNotFoundError
 from ..optics import geometry
 from ..sensor import Sensor, SensorError
 from ..transport import TRANSPORTS, frames as frame_transport, shm
