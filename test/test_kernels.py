@@ -98,9 +98,10 @@ def test_warm_up_compiles_the_frame_kernels_for_read_only_frames():
     """Shared-memory frames are read-only views: another numba signature, which must be
     compiled by warm_up, not on a live node's first frame."""
     kernels.warm_up()
-    for disp in (kernels._cog_moments, kernels._filter_flux, kernels._filter_flux_q,
-                 kernels._grid_filter, kernels._ml_search, kernels._block_marginals,
-                 kernels._corr_peak):
+    for disp in (kernels.blocks._cog_moments, kernels.filters._filter_flux,
+                 kernels.filters._filter_flux_q, kernels.filters._grid_filter,
+                 kernels.ml._ml_search, kernels.blocks._block_marginals,
+                 kernels.corr._corr_peak):
         frames = {sig[0].mutable for sig in disp.signatures}
         assert frames >= {True, False}, disp
 

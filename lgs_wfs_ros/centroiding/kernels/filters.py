@@ -1,0 +1,171 @@
+"""Matched-filter passes (:mod:`..cmf`, :mod:`..gmf`): per-block weights times pixels, the
+CMF's filter and flux in one read, and the grid of filters picked by each block's CoG.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _jit
+
+
+def _block_contract_impl(frame, origins, p, weights, out):
+    # float32 weights times exact pixel values, summed in float64: a float32 sum of 256
+    # products of mixed sign loses ~1e-4 of the result to cancellation
+    n = origins.shape[0]
+    k = weights.shape[1]
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        for q in range(k):
+            w = weights[b, q]
+            acc = 0.0
+            for i in range(p):
+                row = frame[r0 + i, c0:c0 + p]
+                wi = w[i * p:(i + 1) * p]
+                for j in range(p):
+                    acc += np.float64(wi[j]) * np.float64(row[j])
+            out[b, q] = acc
+
+
+def _filter_flux_impl(frame, origins, p, weights, out):
+    # the CMF's two filter rows and a plain pixel sum (the flux row of [R; 1] without reading
+    # 4 bytes of ones per pixel), all in one pass over each block's pixels
+    for b in range(origins.shape[0]):
+        r0, c0 = origins[b, 0], origins[b, 1]
+        w0, w1 = weights[b, 0], weights[b, 1]
+        tot, a0, a1 = 0, 0.0, 0.0
+        for i in range(p):
+            row = frame[r0 + i, c0:c0 + p]
+            o = i * p
+            for j in range(p):
+                v = row[j]
+                tot += np.int64(v)
+                x = np.float64(v)
+                a0 += np.float64(w0[o + j]) * x
+                a1 += np.float64(w1[o + j]) * x
+        out[b, 0] = a0
+        out[b, 1] = a1
+        out[b, 2] = tot
+
+
+def _filter_flux_q_impl(frame, origins, p, weights, scale, out):
+    # _filter_flux_impl with int16 filter rows (one scale each): exact integer sums, half
+    # the filter bytes read a frame (the filter, not the frame, is most of the CMF's traffic)
+    for b in range(origins.shape[0]):
+        tot, a0, a1 = _rows_int16(frame, origins[b, 0], origins[b, 1], p, weights[b, 0],
+                                  weights[b, 1])
+        out[b, 0] = a0 * scale[b, 0]
+        out[b, 1] = a1 * scale[b, 1]
+        out[b, 2] = tot
+
+
+def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, background,
+                      picks, out, index):
+    # per block: the CoG moments (exact int32 row sums), the calibrated CoG (minus bias) as
+    # the first estimate; then up to `picks` times: the grid position nearest to the
+    # estimate, that position's two filter rows applied to the block (int16 rows, exact
+    # integer sums, then their scales), out[b] = position + (R x - background R 1) / flux,
+    # which is the next estimate (stop when the position does not change)
+    n = origins.shape[0]
+    c = (p - 1) / 2.0
+    side = positions.shape[0]
+    half = (side - 1) // 2
+    spacing = positions[1] - positions[0] if side > 1 else 1.0
+    for b in range(n):
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        s, sx, sy = _block_moments(frame, r0, c0, p)
+        flux = s - background * p * p
+        if s <= 0 or not flux > 0:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
+            index[b] = -1
+            continue
+        # moments about the centre do not see a uniform background; the flux does
+        ex = (sx - c * s) / flux - bias[b, 0]
+        ey = (sy - c * s) / flux - bias[b, 1]
+        g = -1
+        for _ in range(picks):
+            kx = min(max(int(np.floor(ex / spacing + 0.5)) + half, 0), side - 1)
+            ky = min(max(int(np.floor(ey / spacing + 0.5)) + half, 0), side - 1)
+            if ky * side + kx == g:
+                break
+            g = ky * side + kx
+            _, a0, a1 = _rows_int16(frame, r0, c0, p, filters[g, b, 0], filters[g, b, 1])
+            ex = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
+            ey = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
+        index[b] = g
+        out[b, 0] = ex
+        out[b, 1] = ey
+
+
+if _jit.AVAILABLE:
+    from .blocks import _block_moments, _rows_int16
+    _block_contract = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
+    _filter_flux = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
+    _filter_flux_q = _jit.numba.njit(cache=True, nogil=True)(_filter_flux_q_impl)
+    _grid_filter = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
+
+
+def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
+                   out: np.ndarray | None = None) -> np.ndarray:
+    """``(n, k)`` float64: ``weights[b] @ block_b.ravel()`` for each valid block ``b``;
+    ``weights`` float32 ``(n, k, p*p)`` (C-contiguous)."""
+    n, k, pp = weights.shape
+    p = int(round(pp ** 0.5))
+    if out is None:
+        out = np.empty((n, k))
+    _block_contract(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
+    return out
+
+
+def filter_flux(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
+                out: np.ndarray | None = None, scale: np.ndarray | None = None) -> np.ndarray:
+    """``(n, 3)`` float64: :func:`block_contract` of the ``(n, 2, p*p)`` filter rows, then
+    each block's plain pixel sum (what a row of ones gives, read for free).
+
+    ``weights`` float32, or int16 with ``scale (n, 2)`` (row ``k`` of block ``b`` is
+    ``scale[b, k] weights[b, k]``, e.g. from :func:`quantize`): then the sums are exact
+    integers, scaled once."""
+    n, k, pp = weights.shape
+    if k != 2:
+        raise ValueError(f"filter_flux takes 2 filter rows, got {k}")
+    p = int(round(pp ** 0.5))
+    if out is None:
+        out = np.empty((n, k + 1))
+    if weights.dtype == np.int16:
+        if scale is None or np.shape(scale) != (n, k):
+            raise ValueError(f"int16 filter rows need scale of shape {(n, k)}")
+        _filter_flux_q(frame, origins, p, np.ascontiguousarray(weights),
+                       np.ascontiguousarray(scale, dtype=np.float64), out)
+        return out
+    _filter_flux(frame, origins, p, np.ascontiguousarray(weights, dtype=np.float32), out)
+    return out
+
+
+def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray,
+                filters: np.ndarray, scale: np.ndarray, rsum: np.ndarray,
+                positions: np.ndarray, background: float = 0.0,
+                picks: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes of the grid matched filter (:class:`.gmf.GMF`), one compiled pass per valid
+    block of an integer frame (see :func:`fits`): the filter of the grid position nearest to
+    the block's calibrated CoG (its CoG minus ``bias (n, 2)``, block axes) is applied to it;
+    with ``picks`` 2 (3) the position nearest to that estimate is chosen again and, where it
+    differs, its filter applied instead (once more).
+    ``filters (G*G, n, 2, p*p)`` int16 C-contiguous, the rows ``scale (G*G, n, 2)`` times
+    them (position ``ky G + kx`` at ``(positions[kx], positions[ky])``, ``positions (G,)``
+    px evenly spaced), ``rsum (G*G, n, 2)`` the rows' sums, ``background`` counts per pixel.
+    Returns ``(slopes (n, 2)`` px, block axes, NaN for a block without light, ``index
+    (n,)``: the position last used, -1 for none)."""
+    n = origins.shape[0]
+    if filters.dtype != np.int16 or not filters.flags.c_contiguous:
+        raise ValueError("grid_filter: filters must be C-contiguous int16")
+    out = np.empty((n, 2))
+    index = np.empty(n, dtype=np.int64)
+    _grid_filter(frame, origins, int(p), np.ascontiguousarray(bias, dtype=np.float64), filters,
+                 np.ascontiguousarray(scale, dtype=np.float64),
+                 np.ascontiguousarray(rsum, dtype=np.float64),
+                 np.ascontiguousarray(positions, dtype=np.float64), float(background),
+                 int(picks), out, index)
+    return out, index
