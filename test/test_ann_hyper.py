@@ -15,6 +15,9 @@ from lgs_wfs_ros.sensor import Sensor
 from test_ann_marginals import DOMAIN
 from test_ann_reference import P, frames
 
+#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
+SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0, photons=1000.0)
+
 
 def linear_hyper_model(path, hyper=True, inp="marginals"):
     """A hyper model that is the pupil-calibrated CoG along block x: one filter, the pixel
@@ -55,7 +58,7 @@ def linear_hyper_model(path, hyper=True, inp="marginals"):
 def test_linear_hyper_model_is_the_pupil_calibrated_cog(tmp_path):
     """Through refits (period 3), on frames and stacks, ann with the linear hyper model equals
     cog with bias = pupil (its bias alone; neither linearized): the refit part gets the calibration's references when it refits."""
-    sensor = Sensor(detector="polar", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    sensor = SMALL.replace(detector="polar", launch_xy_m=(16.0, 0.0))
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(linear_hyper_model(tmp_path / "h.onnx")),
                                         "linearize": False, **pup})
@@ -108,7 +111,7 @@ def test_compiled_first_layer_gives_the_whole_graphs_shifts(templates, tmp_path)
         for prm in net.parameters():
             prm.normal_(0.0, 0.3)
     path = export.save(hypertrain.build_model(net, spec, {"lgs_wfs.domain": DOMAIN}), tmp_path / "c.onnx")
-    sensor = Sensor(detector="polar", photons=300.0)
+    sensor = SMALL.replace(detector="polar", photons=300.0)
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.02}
     fast = options.build("ann", sensor, {"model": str(path), **pup})
     whole = options.build("ann", sensor, {"model": str(path), **pup})
@@ -180,7 +183,7 @@ def test_pixel_hyper_model_reads_whole_blocks_on_a_cartesian_detector(trunk, tmp
     them): its filters come from the calibration's reference images at each refit, the
     frame goes through them (compiled, or the whole frame graph) and the slopes equal cog
     with bias = pupil through refits, on frames and stacks; a block without light is NaN."""
-    sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    sensor = SMALL.replace(detector="cartesian", launch_xy_m=(16.0, 0.0))
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(linear_pixel_hyper_model(tmp_path / "p.onnx", trunk)), **pup})
     cog = options.build("cog", sensor, {"bias": "pupil", "linearize": False, **pup})

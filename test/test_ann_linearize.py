@@ -12,13 +12,16 @@ from lgs_wfs_ros.sensor import Sensor
 
 STILL = {"pupil_period": 10 ** 6}          # no refit: the references stay the calibration's first
 
+#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
+SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0, photons=1000.0)
+
 
 def test_the_reading_of_a_moved_reference_is_a_straight_line():
     """Polar: the noise-free reference moved along the bins (block x) by ``s`` reads
     ``gain s`` (to the interpolation between the response's quarter-pixel knots), ``gain``
     the slope of the response over +-0.5 px; without the option the reading bends away
     from that line. The reference itself reads zero."""
-    sensor = Sensor(detector="polar", photons=1000.0)
+    sensor = SMALL.replace(detector="polar")
     lin = options.build("ann", sensor, STILL)                         # the default
     bent = options.build("ann", sensor, {"linearize": False, **STILL})
     assert lin.describe()["options"]["linearize"] is True
@@ -44,7 +47,7 @@ def test_cartesian_bins_along_the_grid_direction_read_straight():
     of the reference moved along ``d`` by ``s``, straightened, is ``gain s`` plus the
     reference's reading; the centroid differs from the bent one by exactly that change of
     the reading along ``d`` through the solve with the CoG across e."""
-    sensor = Sensor(detector="cartesian", photons=1000.0)
+    sensor = SMALL.replace(detector="cartesian")
     lin = options.build("ann", sensor, STILL)
     bent = options.build("ann", sensor, {"linearize": False, **STILL})
     u = lin._bins_direction()
@@ -98,7 +101,7 @@ def test_response_inverse_interpolates_extends_and_keeps():
 
 
 def test_linearize_is_checked_and_unused_where_it_cannot_apply():
-    sensor = Sensor(detector="cartesian", photons=1000.0)
+    sensor = SMALL.replace(detector="cartesian")
     with pytest.raises(ValueError, match="linearize must be true or false"):
         ann_mod.ANN(sensor, linearize="yes")
     assert ann_mod.ANN(sensor, model="ann_ref").describe()["options"]["linearize"] is False
@@ -111,7 +114,7 @@ def test_a_cartesian_frame_gives_what_the_stack_steps_give():
     scale, straightened response, CoG across e, the two combined, the reference's reading
     removed, NaN without light) gives what the numpy steps give on the same frame as floats,
     with the response and without it, and refuses mismatched shapes."""
-    sensor = Sensor(detector="cartesian", photons=1000.0)
+    sensor = SMALL.replace(detector="cartesian")
     frames = _frames(sensor, 5, seed=11)
     frames[3][:16] = 0                                    # a row of dark blocks
     live = options.build("ann", sensor, {"pupil_period": 2})

@@ -10,6 +10,11 @@ from lgs_wfs_ros.sensor import Sensor
 from test_ann_marginals import linear_marginal_model
 from test_ann_reference import P, frames
 
+#: a side launch 16 m off axis on a 30 x 30 pupil of 1 m subapertures: the full pupil's radii
+#: (long spots the field cuts) on a quarter of its blocks
+SIDE = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="cartesian", launch_xy_m=(16.0, 0.0),
+              photons=1000.0)
+
 
 def subpixel_projection(img, e, points=100_000, seed=0):
     """The bins by brute force: ``points`` uniform random points a pixel, each to the bin it
@@ -129,7 +134,7 @@ def test_marginals_model_on_a_cartesian_detector_reads_bins_along_e(tmp_path):
     its response: :meth:`ANN._solve_ab`), through refits and on
     frames and stacks, through windows moved to the references' light (the model declares
     lgs_wfs.bins_window reference); all subapertures are counted outside the domain."""
-    sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    sensor = SIDE
     path = linear_marginal_model(tmp_path / "marg.onnx", metadata={"lgs_wfs.bins_window": "reference"})
     with pytest.raises(ValueError, match="polar detector; the sensor is cartesian"):
         make_centroider("ann", sensor, model=str(path))
@@ -175,7 +180,7 @@ def test_a_model_trained_on_centred_windows_keeps_them(tmp_path):
     """A model without lgs_wfs.bins_window (trained on windows centred on the blocks, as
     every model before 2026-11-27) reads centred windows through refits, where a model
     declaring reference windows moves them."""
-    sensor = Sensor(detector="cartesian", launch_xy_m=(16.0, 0.0), photons=1000.0)
+    sensor = SIDE
     pup = {"pupil_period": 2, "pupil_time_constant_s": 0.0, "out_of_domain": "warn"}
     old = options.build("ann", sensor, {"model": str(linear_marginal_model(tmp_path / "a.onnx")), **pup})
     new = options.build("ann", sensor, {"model": str(linear_marginal_model(
@@ -302,7 +307,7 @@ def test_a_column_sum_model_reads_the_grid_bins_and_the_shift_along_the_grid_dir
     v^T J s, J the calibrated CoG's response (the field's edge makes it differ from v . s
     on the outer blocks); on frames (the compiled pass) as on stacks. With bins = span the
     reading is in the bins' pitch (sqrt 2 px along diagonals): s . u, u = d / pitch."""
-    sensor = Sensor(detector="cartesian", photons=1000.0, launch_xy_m=(16.0, 0.0))   # long spots
+    sensor = SIDE                                                   # long spots
     path = linear_marginal_model(tmp_path / "marg.onnx")
     pup = {"pupil_period": 3, "pupil_time_constant_s": 0.0}
     ann = options.build("ann", sensor, {"model": str(path), "out_of_domain": "warn", "bins": bins,
