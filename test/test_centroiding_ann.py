@@ -1,6 +1,7 @@
 """ONNX runner: metadata contract, normalisation, output scale and frame, conditioning,
 model lookup and clear errors; models are tiny graphs built here with onnx.helper."""
 
+import functools
 import json
 
 import numpy as np
@@ -222,12 +223,19 @@ def test_unfoldable_graph_keeps_the_plain_path(tmp_path):
     np.testing.assert_allclose(c.centroid(x), make_centroider("cog", SENSOR).centroid(x), atol=1e-4)
 
 
+@functools.lru_cache(maxsize=None)
+def _built(name, options):
+    """One centroider per (name, options) for the dtypes below: stateless with a static
+    reference, and the full pupil's model CMF takes ~20 s to build."""
+    return make_centroider(name, SENSOR, **dict(options))
+
+
 @pytest.mark.parametrize("name,options", [("cog", {}), ("cmf", {"reference": "model", "weighting": "model"})])
 @pytest.mark.parametrize("dtype", [np.uint16, np.float32, np.float64])
 def test_frame_fast_path_equals_stack_path(name, options, dtype):
     """CoG and the model-weighted CMF cast a frame block by block in one pass; the
     answer is the one the valid-block stack gives."""
-    c = make_centroider(name, SENSOR, **options)
+    c = _built(name, tuple(sorted(options.items())))
     x = stack(5).astype(dtype)
     frame = geometry.stack_to_frame(x, LAY)
     np.testing.assert_allclose(c.centroid(frame), c.centroid(x), atol=1e-6)

@@ -267,8 +267,10 @@ def test_update_period_and_static_reference_requirements():
 
 
 def test_model_reference_needs_no_images():
-    """reference="model": built from the sensor (core + 10 km layer), usable at once."""
-    c = make_centroider("cmf", SENSOR, reference="model", weighting="model")
+    """reference="model": built from the sensor (core + 10 km layer), usable at once (a 30 x
+    30 pupil of 1 m subapertures: the full pupil's radii, a quarter of its blocks)."""
+    c = make_centroider("cmf", SENSOR.replace(n_subaps=30, subap_pitch_m=1.0), reference="model",
+                        weighting="model")
     model = c.reference
     out = c.centroid(model)
     np.testing.assert_allclose(out, 0, atol=1e-9)
