@@ -34,7 +34,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import _jit
-from ._jit import AVAILABLE
+#: whether the compiled passes run (numba is installed); every wrapper reads it at each call
+AVAILABLE = _jit.COMPILED
 from .bins import (GRID_SLOTS, bins_shifts, block_bins, grid_bins, hyper_contract,
                    hyper_contract_moved, response_inverse)
 from .blocks import (add_counts, block_marginals, block_origins, block_rows, cog_moments, fits,
@@ -59,7 +60,7 @@ def warm_up() -> None:
     writable and on a read-only frame: shared-memory frames are read-only views, another
     signature for numba (compiled on a live node's first frame, that held it ~0.2 s)."""
     global _warm
-    if _warm or not _jit.AVAILABLE:
+    if _warm or not _jit.enabled():
         return
     frame = np.zeros((4, 4), np.uint16)
     o = np.zeros((1, 2), np.int64)

@@ -184,7 +184,7 @@ def _bins_shifts_impl(raw, scale, r, t, gain, mom, centre, e, a, c, offset, out)
         out[b, 1] = x * a[b, 1] + across * c[b, 1] - offset[b, 1]
 
 
-if _jit.AVAILABLE:
+if _jit.COMPILED:
     from .blocks import _block_moments, _block_sums
     _block_bins = _jit.numba.njit(cache=True, nogil=True)(_block_bins_impl)
     _grid_bins = _jit.numba.njit(cache=True, nogil=True)(_grid_bins_impl)
@@ -262,7 +262,7 @@ def hyper_contract_moved(x: np.ndarray, filters: np.ndarray, fbias: np.ndarray,
     z = np.empty((n, filters.shape[2]), dtype=np.float32)
     safe = np.empty((n, 1), dtype=np.float32)
     chosen = np.empty(n, dtype=np.int64)
-    if _jit.AVAILABLE:
+    if _jit.enabled():
         _hyper_contract(x, filters, fbias, pos, cbias, np.float32(step), z, safe, chosen)
         return z, safe, chosen
     half = filters.shape[1] // 2
@@ -293,7 +293,7 @@ def response_inverse(x: np.ndarray, response: np.ndarray, moves: np.ndarray,
             or r.shape[1] < 2:
         raise ValueError(f"response_inverse: readings {x.shape}, response {r.shape}, moves "
                          f"{t.shape} and gain {g.shape} do not match")
-    if _jit.AVAILABLE:
+    if _jit.enabled():
         out = np.empty_like(x)
         _response_inverse(x, r, t, g, out)
         return out

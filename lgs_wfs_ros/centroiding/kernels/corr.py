@@ -189,7 +189,7 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
         out[b, 1] = ly + min(max(oy, -1.0), 1.0)
 
 
-if _jit.AVAILABLE:
+if _jit.COMPILED:
     _lag_product = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(
         _lag_product_impl)
     _lag_block9 = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(

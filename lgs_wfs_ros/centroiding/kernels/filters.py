@@ -100,7 +100,7 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = ey
 
 
-if _jit.AVAILABLE:
+if _jit.COMPILED:
     from .blocks import _block_moments, _rows_int16
     _block_contract = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
     _filter_flux = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)

@@ -69,7 +69,7 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
 _NO_ACC = np.zeros((0, 2, 1))
 
 
-if _jit.AVAILABLE:
+if _jit.COMPILED:
     from .blocks import _block_sums
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)

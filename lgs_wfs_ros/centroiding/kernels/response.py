@@ -117,7 +117,7 @@ def _invert_response_impl(coef, extent, guess, gdeg, m, iterations, min_det, s_o
             jac_out[b, 1, 1] = 1.0
 
 
-if _jit.AVAILABLE:
+if _jit.COMPILED:
     # numpy error model: a zero determinant gives inf/NaN (rejected), not an exception;
     # fast-math without the no-NaN/no-inf flags (NaN rows must stay NaN)
     _invert_response = _jit.numba.njit(cache=True, nogil=True, error_model="numpy",
