@@ -211,3 +211,20 @@ def test_corr_kernel_reads_its_references_at_int16_without_moving_the_peak():
     from lgs_wfs_ros.centroiding.correlation import _parabola_peak
     want = _parabola_peak(exact, log=True) - exact.shape[-1] / 2
     assert np.abs(got - want).max() < 1e-3
+
+
+def test_turning_the_flag_off_takes_every_wrapper_to_numpy(monkeypatch):
+    """The tests above compare each estimator with and without its compiled pass by turning
+    ``kernels.AVAILABLE`` off: every wrapper must read that one flag at each call (a module
+    of the package reading a flag of its own left them comparing the kernel with itself)."""
+    s = SENSORS[2]
+    f = _frame(s, 9)
+    stack = np.zeros((2, 4, 4), np.uint16)
+    r, t, g = np.array([[-1.0, 0.0, 1.0]]), np.array([-1.0, 0.0, 1.0]), np.ones(1)
+    assert kernels.fits(f, s.frame_shape) and kernels.stack_view(stack, 2, 4) is not None
+    assert kernels.add_counts(np.zeros(4, np.uint32), np.zeros(4, np.uint16))
+    monkeypatch.setattr(kernels.bins, "_response_inverse", None)       # a compiled call fails
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    assert not kernels.fits(f, s.frame_shape) and kernels.stack_view(stack, 2, 4) is None
+    assert not kernels.add_counts(np.zeros(4, np.uint32), np.zeros(4, np.uint16))
+    np.testing.assert_allclose(kernels.response_inverse(np.array([0.5]), r, t, g), [0.5])
