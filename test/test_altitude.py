@@ -7,9 +7,9 @@ from lgs_wfs_ros.centroiding import options
 from lgs_wfs_ros.centroiding.altitude import AltitudeTracker
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
+from pupils import SMALL
 
-#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
-SENSOR = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="cartesian", launch_xy_m=(16.0, 0.0))
+SENSOR = SMALL.replace(detector="cartesian", launch_xy_m=(16.0, 0.0))
 LAYOUT = geometry.layout(SENSOR)
 MODE = LAYOUT.r_m[:, None] * LAYOUT.e                 # what an altitude change moves
 

@@ -14,9 +14,7 @@ from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from test_ann_marginals import DOMAIN
 from test_ann_reference import P, frames
-
-#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
-SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0, photons=1000.0)
+from pupils import SMALL
 
 
 def linear_hyper_model(path, hyper=True, inp="marginals"):

@@ -8,12 +8,9 @@ import pytest
 from lgs_wfs_ros.centroiding import ann as ann_mod
 from lgs_wfs_ros.centroiding import kernels, options
 from lgs_wfs_ros.optics import geometry
-from lgs_wfs_ros.sensor import Sensor
+from pupils import SMALL
 
 STILL = {"pupil_period": 10 ** 6}          # no refit: the references stay the calibration's first
-
-#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
-SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0, photons=1000.0)
 
 
 def test_the_reading_of_a_moved_reference_is_a_straight_line():

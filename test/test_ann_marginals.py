@@ -10,6 +10,7 @@ from lgs_wfs_ros.learning.model import forward
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from test_ann_reference import P, beside_calibrated_cog, frames
+from pupils import SMALL
 
 DOMAIN = {"radius_m": [0.0, 40.0], "detector": ["polar"], "photons": [100, 3000],
           "profile_prior": "test", "input": "marginals+reference"}
@@ -52,8 +53,7 @@ def test_linear_marginal_model_is_the_pupil_calibrated_cog(tmp_path, log_weight,
     the calibrated CoG of the row sums); the log-total input is the log10 of each block's
     counts (over 3, minus 0.8). With ``bias: pupil`` the model's reading of its noise-free
     reference is subtracted: here the log term at the calibration's flux."""
-    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="polar", launch_xy_m=(16.0, 0.0),
-                    photons=1000.0)                     # the full pupil's radii, 1/4 of its blocks
+    sensor = SMALL.replace(detector="polar", launch_xy_m=(16.0, 0.0))
     ann, cog, plain = beside_calibrated_cog(
         sensor, linear_marginal_model(tmp_path / "marg.onnx", log_weight), bias=bias)
     assert ann.describe()["options"]["bias"] == bias

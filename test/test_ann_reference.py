@@ -13,6 +13,7 @@ from lgs_wfs_ros.centroiding.ann_model import split_reference
 from lgs_wfs_ros.learning import reftrain
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
+from pupils import SMALL
 
 P = 16
 
@@ -77,8 +78,7 @@ def test_linear_reference_model_is_the_pupil_calibrated_cog(tmp_path, det, bias)
     """Through a refit (period 3), frame by frame and on stacks, ann with the linear model
     equals cog with bias = pupil: the same references, installed at the same frame (the
     model reads its own reference as 0, so ``bias: pupil`` changes nothing)."""
-    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector=det, launch_xy_m=(16.0, 0.0),
-                    photons=1000.0)                     # the full pupil's radii, 1/4 of its blocks
+    sensor = SMALL.replace(detector=det, launch_xy_m=(16.0, 0.0))
     ann, cog, plain = beside_calibrated_cog(sensor, linear_reference_model(tmp_path / "lin.onnx"), bias)
     lay = geometry.layout(sensor)
     for k, f in enumerate(frames(sensor, 7)):

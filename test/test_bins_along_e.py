@@ -9,11 +9,10 @@ from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from test_ann_marginals import linear_marginal_model
 from test_ann_reference import P, frames
+from pupils import SMALL
 
-#: a side launch 16 m off axis on a 30 x 30 pupil of 1 m subapertures: the full pupil's radii
-#: (long spots the field cuts) on a quarter of its blocks
-SIDE = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="cartesian", launch_xy_m=(16.0, 0.0),
-              photons=1000.0)
+#: a side launch 16 m off axis: long spots the field cuts
+SIDE = SMALL.replace(detector="cartesian", launch_xy_m=(16.0, 0.0))
 
 
 def subpixel_projection(img, e, points=100_000, seed=0):

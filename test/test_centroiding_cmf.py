@@ -9,6 +9,7 @@ from lgs_wfs_ros.centroiding.reference import fourier_derivatives, fourier_shift
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
 from spotgen import sodium_line, spots
+from pupils import SMALL
 
 SENSOR = Sensor()
 LAY = geometry.layout(SENSOR)
@@ -269,8 +270,7 @@ def test_update_period_and_static_reference_requirements():
 def test_model_reference_needs_no_images():
     """reference="model": built from the sensor (core + 10 km layer), usable at once (a 30 x
     30 pupil of 1 m subapertures: the full pupil's radii, a quarter of its blocks)."""
-    c = make_centroider("cmf", SENSOR.replace(n_subaps=30, subap_pitch_m=1.0), reference="model",
-                        weighting="model")
+    c = make_centroider("cmf", SMALL, reference="model", weighting="model")
     model = c.reference
     out = c.centroid(model)
     np.testing.assert_allclose(out, 0, atol=1e-9)

@@ -2,7 +2,6 @@
 sensor outside it with the reason, and with out_of_domain = warn runs and counts."""
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from lgs_wfs_ros.learning import domains, export, recipes, refdata
 from lgs_wfs_ros.optics import geometry, sodium
 from lgs_wfs_ros.optics.spots import SpotModel
 from lgs_wfs_ros.sensor import Sensor
+from pupils import SMALL
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 POLAR = Sensor(detector="polar")
@@ -163,7 +163,7 @@ def test_a_network_says_when_the_calibrated_sky_leaves_its_training_profiles(fam
     unseen family: the calibrated profile is checked against the model's profile ranges at
     each install of references; outside, describe() carries the reason and the count and
     the centroider's notice says it (a node logs each change)."""
-    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="polar")
+    sensor = SMALL.replace(detector="polar")
     lay = geometry.layout(sensor)
     h, d = sodium.unseen_profiles(family, 1, 700.0, seed=2)
     sm = SpotModel(sensor, lay.r_m, lay.e, h, d[0], max_shift_px=3.5)
@@ -196,7 +196,7 @@ def test_replay_records_the_notice_once_when_the_sky_leaves_the_training_profile
     from lgs_wfs_ros.analysis.replay import replay_bag
     from lgs_wfs_ros.bags import BagReader
 
-    sensor = Sensor(n_subaps=30, subap_pitch_m=1.0, detector="polar")
+    sensor = SMALL.replace(detector="polar")
     lay = geometry.layout(sensor)
     h, d = sodium.unseen_profiles("high", 1, 700.0, seed=2)
     sm = SpotModel(sensor, lay.r_m, lay.e, h, d[0], max_shift_px=3.5)

@@ -6,13 +6,12 @@ import pytest
 from lgs_wfs_ros.centroiding import kernels, make_centroider
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.sensor import Sensor
+from pupils import SMALL
 
 pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
 
 SENSORS = [Sensor(), Sensor(detector="polar"), Sensor(diameter_m=4.0, obstruction_m=0.5,
                                                       n_subaps=8, pixels=12)]
-#: the full pupil's radii on a 30 x 30 pupil of 1 m subapertures (a quarter of its blocks)
-SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0)
 
 
 def _frame(sensor, seed, high=False):

@@ -11,9 +11,7 @@ from lgs_wfs_ros.optics import geometry, sodium
 from lgs_wfs_ros.optics.model_spot import Projection, shift_to_detector
 from lgs_wfs_ros.optics.spots import NO_LIGHT, SpotModel
 from lgs_wfs_ros.sensor import Sensor
-
-# a 30 x 30 pupil of 1 m subapertures: the full pupil's radii (to 15 m) at a quarter the cost
-SMALL = Sensor(n_subaps=30, subap_pitch_m=1.0)
+from pupils import SMALL
 
 
 def true_spots(sensor, family, seed=2):

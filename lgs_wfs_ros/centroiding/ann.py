@@ -112,7 +112,7 @@ class ANN(Centroider):
         if md["hyper"]:                                  # the reference sets filters once per refit
             import onnx
             refit, frame = ann_model.split_hyper(onnx.load(str(self.path)), md["conditioning_input"],
-                                       md["hyper_outputs"])
+                                                 md["hyper_outputs"])
             self._refit = ann_model.open_session(refit.SerializeToString())
             self.session = ann_model.open_session(frame.SerializeToString())
             self._trunk = ann_model.hyper_trunk(frame, md["hyper_trunk"])
