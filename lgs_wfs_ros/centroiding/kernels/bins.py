@@ -22,6 +22,7 @@ def _block_bins_impl(frame, origins, p, start, w, bins, moments):
     even = np.zeros(p + 4, dtype=np.float32)          # bins -2 .. p + 1
     odd = np.zeros(p + 4, dtype=np.float32)
     for b in range(n):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         moments[b, 0], moments[b, 1], moments[b, 2] = _block_moments(frame, r0, c0, p)
@@ -70,6 +71,7 @@ def _grid_bins_impl(frame, origins, p, code, sums, shares, raw, bins, moments):
     no_acc = np.zeros((0, 2, 1))
     dacc = np.zeros((2, wk), dtype=np.int32)
     for b in range(n):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         k = code[b]
@@ -185,7 +187,7 @@ def _bins_shifts_impl(raw, scale, r, t, gain, mom, centre, e, a, c, offset, out)
 
 
 if _jit.COMPILED:
-    from .blocks import _block_moments, _block_sums
+    from .blocks import FRAME_AHEAD, _block_moments, _block_sums, _prefetch_block
     _block_bins = _jit.numba.njit(cache=True, nogil=True)(_block_bins_impl)
     _grid_bins = _jit.numba.njit(cache=True, nogil=True)(_grid_bins_impl)
     _hyper_contract = _jit.numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})(

@@ -58,6 +58,25 @@ def fits(frame, shape) -> bool:
             and frame.strides[1] == frame.itemsize)
 
 
+#: blocks ahead of the one being read whose pixels a pass asks for (:func:`_prefetch_block`):
+#: a block's 16 rows are 1,920 bytes apart in a 960-pixel frame, 16 streams the hardware
+#: does not follow (asked 2 blocks ahead, the CoG moments of a full frame take 0.34 ms
+#: instead of 0.41, 2026-11-28)
+FRAME_AHEAD = 2
+
+
+def _prefetch_block_impl(frame, origins, b, p):
+    # ask for the pixel rows of block b, if there is one (each row's first and last pixel:
+    # a row that straddles two cache lines gets both); no value changes
+    if b < origins.shape[0]:
+        r0 = origins[b, 0]
+        c0 = origins[b, 1]
+        for i in range(p):
+            row = frame[r0 + i]
+            _jit.prefetch(row, c0)
+            _jit.prefetch(row, c0 + p - 1)
+
+
 def _block_moments_impl(frame, r0, c0, p):
     # (total, sum of x, sum of y) of the block at (r0, c0), pixel indices from 0: exact,
     # int32 per row (at most 65535 p (p - 1) / 2: 7.9 M for p = 16; fits up to p = 255)
@@ -81,6 +100,7 @@ def _block_moments_impl(frame, r0, c0, p):
 def _cog_moments_impl(frame, origins, p, centre, out):
     n = origins.shape[0]
     for b in range(n):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         s, sx, sy = _block_moments(frame, r0, c0, p)
@@ -150,6 +170,7 @@ def _add_counts_impl(acc, counts):
 def _block_rows_impl(frame, origins, p, out):
     # out (n, p*p) float32: each valid block's counts, row-major, cast as they are read
     for b in range(origins.shape[0]):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         for i in range(p):
@@ -163,10 +184,12 @@ def _block_marginals_impl(frame, origins, p, acc, out):
     # out (n, 2, p) float32; acc (n, 2, p) float64 or a 0-row dummy
     col = np.zeros(p, dtype=np.int32)
     for b in range(origins.shape[0]):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         _block_sums(frame, origins[b, 0], origins[b, 1], p, col, out[b], acc, b)
 
 
 if _jit.COMPILED:
+    _prefetch_block = _jit.numba.njit(cache=True, nogil=True, inline="always")(_prefetch_block_impl)
     _block_moments = _jit.numba.njit(cache=True, nogil=True, inline="always")(_block_moments_impl)
     _cog_moments = _jit.numba.njit(cache=True, nogil=True)(_cog_moments_impl)
     _block_sums = _jit.numba.njit(cache=True, nogil=True, inline="always")(_block_sums_impl)

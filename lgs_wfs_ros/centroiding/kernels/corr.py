@@ -98,6 +98,7 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
     w9 = np.empty(9)
     bg = np.float32(background)
     for b in range(n):
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         r0 = origins[b, 0]
         c0 = origins[b, 1]
         # integer sums (exact, vectorised); the background's share taken out after
@@ -190,6 +191,7 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
 
 
 if _jit.COMPILED:
+    from .blocks import FRAME_AHEAD, _prefetch_block
     _lag_product = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(
         _lag_product_impl)
     _lag_block9 = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(

@@ -30,6 +30,7 @@ def _ml_search_impl(frame, origins, p, logs, norms, bias, kphase, kbase, acc, ou
     col = np.zeros(p, dtype=np.int32)
     marg = np.empty((2, p), dtype=np.float32)
     for b in range(n):                              # marginals (and the calibration's sums)
+        _prefetch_block(frame, origins, b + FRAME_AHEAD, p)
         tot = np.float64(_block_sums(frame, origins[b, 0], origins[b, 1], p, col, marg, acc, b))
         if not tot > 0:
             out[b, 0] = np.nan
@@ -70,7 +71,7 @@ _NO_ACC = np.zeros((0, 2, 1))
 
 
 if _jit.COMPILED:
-    from .blocks import _block_sums
+    from .blocks import FRAME_AHEAD, _block_sums, _prefetch_block
     # the marginals are exact integers in float32 (at most 16 x 65535 = 1.05e6 < 2^24)
     _ml_line = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(_ml_line_impl)
     _ml_search = _jit.numba.njit(cache=True, nogil=True)(_ml_search_impl)
