@@ -62,6 +62,23 @@ def test_compiled_pass_equals_numpy_on_noisy_frames_and_a_dark_block_is_nan(dete
     np.testing.assert_allclose(est_frame, est_stack, atol=1e-9)
 
 
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_blocks_brighter_than_65535_counts_take_the_wide_sums():
+    """The compiled pass sums a block's filter products in 32 bits when its pixel sum is at
+    most 65535 (exact there) and in 64 bits above: spots of 40,000 and of 300,000 counts
+    (the second past int32 in 32-bit sums: a filter coefficient of 32767 times 300,000)
+    give numpy's shifts on both sides of the switch."""
+    sensor = small("cartesian")
+    a, b = table.build("gmf", sensor), table.build("gmf", sensor)
+    truth = np.random.default_rng(6).uniform(-0.9, 0.9, (a.n, 2))
+    for photons in (4.0e4, 3.0e5):
+        counts = np.minimum(counts_at(a, truth, photons=photons), 65535.0)
+        est_frame = a.centroid(frame_of(sensor, counts))
+        est_stack = b.centroid(counts.astype(np.float32))
+        assert np.abs(a.to_pixel_axes(est_frame) - truth).max() < 0.01
+        np.testing.assert_allclose(est_frame, est_stack, atol=1e-9)
+
+
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_a_uniform_background_is_removed(detector):
     """Counts with 50 background counts a pixel (a quarter of the light), given as the

@@ -79,7 +79,9 @@ def _prefetch_block_impl(frame, origins, b, p):
 
 def _block_moments_impl(frame, r0, c0, p):
     # (total, sum of x, sum of y) of the block at (r0, c0), pixel indices from 0: exact,
-    # int32 per row (at most 65535 p (p - 1) / 2: 7.9 M for p = 16; fits up to p = 255)
+    # int32 per row (at most 65535 p (p - 1) / 2: 7.9 M for p = 16; fits up to p = 255).
+    # numba widens int32 arithmetic to int64; the casts keep the row sums in 32-bit lanes
+    # (8 to a vector instead of 4: a full frame's moments 0.23 -> 0.15 ms, 2026-11-28)
     s = 0
     sx = 0
     sy = 0
@@ -89,8 +91,8 @@ def _block_moments_impl(frame, r0, c0, p):
         rx = np.int32(0)
         for j in range(p):
             v = np.int32(row[j])
-            rs += v
-            rx += v * np.int32(j)
+            rs = np.int32(rs + v)
+            rx = np.int32(rx + np.int32(v * np.int32(j)))
         s += rs
         sx += rx
         sy += rs * i
@@ -121,8 +123,8 @@ def _block_sums_impl(frame, r0, c0, p, col, dst, acc, b):
         rs = np.int32(0)
         for j in range(p):
             v = np.int32(row[j])
-            rs += v
-            col[j] += v
+            rs = np.int32(rs + v)             # 32-bit lanes, as in _block_moments
+            col[j] = np.int32(col[j] + v)
         dst[1, i] = rs
         tot += rs
     for j in range(p):
@@ -160,6 +162,22 @@ def _rows_int16_impl(frame, r0, c0, p, w0, w1):
     return tot, a0, a1
 
 
+def _rows_int16_narrow_impl(frame, r0, c0, p, w0, w1):
+    # (w0 . block, w1 . block) as _rows_int16 gives them, for a block whose pixel sum is at
+    # most 65535: then every partial sum is within 32767 x 65535 < 2^31, so 32-bit lanes
+    # hold it exactly (the same integers; a full frame's two rows 0.32 -> 0.27 ms)
+    a0 = np.int32(0)
+    a1 = np.int32(0)
+    for i in range(p):
+        row = frame[r0 + i, c0:c0 + p]
+        o = i * p
+        for j in range(p):
+            x = np.int32(row[j])
+            a0 = np.int32(a0 + np.int32(np.int32(w0[o + j]) * x))
+            a1 = np.int32(a1 + np.int32(np.int32(w1[o + j]) * x))
+    return a0, a1
+
+
 def _add_counts_impl(acc, counts):
     # acc (N,) uint32 += counts (N,) uint8/uint16: a flat loop the compiler vectorises
     # (numpy's add with a cast runs its buffered casting loop: twice as long)
@@ -194,6 +212,8 @@ if _jit.COMPILED:
     _cog_moments = _jit.numba.njit(cache=True, nogil=True)(_cog_moments_impl)
     _block_sums = _jit.numba.njit(cache=True, nogil=True, inline="always")(_block_sums_impl)
     _rows_int16 = _jit.numba.njit(cache=True, nogil=True, inline="always")(_rows_int16_impl)
+    _rows_int16_narrow = _jit.numba.njit(cache=True, nogil=True, inline="always")(
+        _rows_int16_narrow_impl)
     _add_counts = _jit.numba.njit(cache=True, nogil=True)(_add_counts_impl)
     _block_rows = _jit.numba.njit(cache=True, nogil=True)(_block_rows_impl)
     _block_marginals = _jit.numba.njit(cache=True, nogil=True)(_block_marginals_impl)

@@ -132,7 +132,10 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
             if ky * side + kx == g:
                 break
             g = ky * side + kx
-            _, a0, a1 = _rows_int16(frame, r0, c0, p, filters[g, b, 0], filters[g, b, 1])
+            if s <= 65535:
+                a0, a1 = _rows_int16_narrow(frame, r0, c0, p, filters[g, b, 0], filters[g, b, 1])
+            else:
+                _, a0, a1 = _rows_int16(frame, r0, c0, p, filters[g, b, 0], filters[g, b, 1])
             ex = positions[kx] + (a0 * scale[g, b, 0] - background * rsum[g, b, 0]) / flux
             ey = positions[ky] + (a1 * scale[g, b, 1] - background * rsum[g, b, 1]) / flux
         index[b] = g
@@ -141,7 +144,8 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
 
 
 if _jit.COMPILED:
-    from .blocks import FRAME_AHEAD, _block_moments, _prefetch_block, _rows_int16
+    from .blocks import (FRAME_AHEAD, _block_moments, _prefetch_block, _rows_int16,
+                         _rows_int16_narrow)
     _grid_nearest = _jit.numba.njit(cache=True, nogil=True, inline="always")(_grid_nearest_impl)
     _block_contract = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_block_contract_impl)
     _filter_flux = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
