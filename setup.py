@@ -73,8 +73,9 @@ setup(
         "train": ["torch==2.13.0"],
         # zero-copy frames between the nodes of one host (frame_transport: shm)
         "shm": ["iceoryx2>=0.10,<0.11"],
-        # compiled single-pass centroid kernels and the fast simulator (numpy fallback without)
-        "fast": ["numba>=0.68,<0.69"],
+        # compiled single-pass centroid kernels and the fast simulator (numpy fallback without);
+        # llvmlite, numba's code generator, for the prefetch hint (kernels/_jit.py)
+        "fast": ["numba>=0.68,<0.69", "llvmlite>=0.50,<0.51"],
         # Test-only tools: aotools and the mcap reference readers check our own code;
         # colcon builds the package in a test, as a ROS install would.
         "test": ["pytest>=8,<10", "pytest-xdist>=3.8,<4", "aotools>=1.0.7,<2", "mcap-ros2-support>=0.5,<1",

@@ -27,7 +27,8 @@ and the calibration's accumulation; at each refit 5 renders per position (125 fo
 pupil at 5 x 5, through the simulator's compiled renderer: a refit takes ~1.2 s polar,
 ~3.2 s cartesian) and the filters, 72 MB in int16 for the full pupil
 (:func:`.kernels.quantize`; one
-or two positions' rows, 1 kB a block each, are read each frame). Refits can run in a
+or two positions' rows, 1 kB a block each, are read each frame, the first asked for three
+blocks ahead: :func:`.kernels.grid_filter`). Refits can run in a
 background thread (``pupil_async``), as for every pupil-calibrated estimator.
 """
 

@@ -11,6 +11,9 @@ import sys
 
 try:                                     # optional: the 'fast' extra
     import numba
+    from llvmlite import ir
+    from numba.core import cgutils
+    from numba.extending import intrinsic
     COMPILED = True
 except ImportError:                      # pragma: no cover - exercised where it is absent
     numba = None
@@ -23,10 +26,6 @@ def enabled() -> bool:
 
 
 if COMPILED:
-    from llvmlite import ir
-    from numba.core import cgutils
-    from numba.extending import intrinsic
-
     @intrinsic
     def prefetch(typingctx, arr, index):
         """``prefetch(arr, i)`` in compiled code: ask for the cache line of ``arr[i]`` (1-D
