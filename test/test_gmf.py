@@ -1,9 +1,13 @@
 """The grid matched filter (centroiding/gmf.py) on small pupils of both detectors."""
 
+import functools
+
 import numpy as np
 import pytest
 
 from lgs_wfs_ros.centroiding import kernels, options as table
+from lgs_wfs_ros.centroiding.gmf import GMF
+from lgs_wfs_ros.optics import fast_frames
 from lgs_wfs_ros.optics import geometry
 from lgs_wfs_ros.optics.model_spot import ProfileSpots
 from lgs_wfs_ros.sensor import Sensor
@@ -120,6 +124,31 @@ def test_the_second_pick_recovers_from_a_wrong_first_choice(detector):
         assert np.abs(est[1, path] - truth).max() > 0.05
         assert np.abs(est[2, path] - truth).max() < 0.01
         np.testing.assert_allclose(est[2, path], est[2, "stack"], atol=1e-9)
+
+
+@pytest.mark.skipif(not fast_frames.AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_the_grid_rendered_on_canvases_gives_the_filters_of_one_render_a_position(monkeypatch):
+    """On cartesian pixels a refit renders each sub-pixel phase of the grid once on a wider
+    canvas and crops the whole-pixel moves from it: the filters, their scales and sums are
+    the ones 25 x 5 renders give, bit for bit, on the default grid and on a 3 x 3 grid 1 px
+    apart (one phase); a crop a pixel off changes them."""
+    sensor = small("cartesian")
+    for opts in ({}, {"grid": 3, "spacing_px": 1.0}):
+        c = table.build("gmf", sensor, opts)
+        new = c._prepare(c.pupil)
+        with monkeypatch.context() as m:
+            m.setattr(GMF, "_position_images", functools.partialmethod(GMF._position_images,
+                                                                       canvas=False))
+            old = c._prepare(c.pupil)
+        for key in ("filters", "scale", "rsum", "ok"):
+            np.testing.assert_array_equal(new[key], old[key])
+    real = GMF._position_images
+
+    def off_by_one(self, calibration, canvas=True):
+        for k, img, dx, dy in real(self, calibration, canvas):
+            yield k, np.roll(img, 1, axis=2), np.roll(dx, 1, axis=2), np.roll(dy, 1, axis=2)
+    monkeypatch.setattr(GMF, "_position_images", off_by_one)
+    assert not np.array_equal(c._prepare(c.pupil)["filters"], old["filters"])
 
 
 def test_options_are_checked():

@@ -108,6 +108,38 @@ def test_fast_cartesian_noise_free_frames_equal_the_exact_ones():
     assert b.frame.max() > 100 and np.count_nonzero(a.frame == 9.0) == 0
 
 
+@pytest.mark.skipif(not detector.FAST_AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_a_canvas_crop_is_the_block_of_a_spot_moved_by_whole_pixels():
+    """FastRenderer.canvas on a 2 px margin: the crop ``[2 - dy:, 2 - dx:]`` of spots
+    rendered at (0.3, -0.2) px is the block the frame path renders for the same spots at
+    (0.3 + dx, -0.2 + dy), for whole moves up to 2 px either way (to float32, the frame's
+    precision); a crop a pixel off is not. Polar models are refused."""
+    from lgs_wfs_ros.optics import geometry
+    from lgs_wfs_ros.optics.model_spot import ProfileSpots
+    s = Sensor(detector="cartesian", dtype="float32", diameter_m=12.0, obstruction_m=1.5,
+               n_subaps=24, launch_xy_m=(10.0, 0.0))
+    lay = geometry.layout(s)
+    alt = np.linspace(80e3, 100e3, 41)
+    spots = ProfileSpots(s, lay.r_m, lay.e, alt, np.exp(-0.5 * ((alt - 91e3) / 3e3) ** 2), 4.0)
+    r = fast_frames.FastRenderer(lay)
+    base = np.tile([0.3, -0.2], (lay.n_valid, 1))
+    canvas = r.canvas(spots.model, base, 2)
+    assert canvas.shape == (lay.n_valid, s.pixels + 4, s.pixels + 4)
+    p, frame = s.pixels, np.empty(s.frame_shape, np.float32)
+    for dx, dy in ((0, 0), (1, 0), (-2, 1), (2, -2), (0, -1)):
+        r.render(spots.model, base + [dx, dy], frame, 1.0, 0, noise=False, per_field=False)
+        block = geometry.frame_to_stack(frame, lay)
+        crop = canvas[:, 2 - dy:2 - dy + p, 2 - dx:2 - dx + p].astype(np.float32)
+        np.testing.assert_array_equal(crop, block)
+        q = 2 - dx + (1 if dx >= 0 else -1)                      # a pixel off
+        assert np.abs(canvas[:, 2 - dy:2 - dy + p, q:q + p] - block).max() > 1e-3
+    polar = s.replace(detector="polar")
+    pl = geometry.layout(polar)
+    with pytest.raises(ValueError, match="cartesian"):
+        fast_frames.FastRenderer(pl).canvas(ProfileSpots(polar, pl.r_m, pl.e, alt, np.ones(41), 4.0).model,
+                                            base, 2)
+
+
 def test_fast_with_background_takes_the_general_path():
     """Read noise or background: not the fused kernel, expose's general path."""
     s = Sensor(detector="polar", diameter_m=8.0, obstruction_m=1.0, n_subaps=6, background_e=2.0)

@@ -573,6 +573,30 @@ class FastRenderer:
         _zero_blocks(out, self.zrows, self.zcols, p)
         return trunc, int(sat)
 
+    def canvas(self, model: SpotModel, truth, margin: int) -> np.ndarray:
+        """``(n, p + 2 margin, p + 2 margin)`` float64: the noise-free unit-light spots of a
+        cartesian ``model`` displaced by ``truth (n, 2)`` px (detector axes), on a canvas
+        ``margin`` px wider than the block on every side (block pixel ``(i, j)`` is canvas
+        pixel ``(i + margin, j + margin)``). The renderer is the same at every pixel, so the
+        block's image of a spot moved by whole pixels ``(dx, dy)`` (``|d| <= margin``) is the
+        crop ``[margin - dy : margin - dy + p, margin - dx : margin - dx + p]``: a grid of
+        positions 0.5 px apart needs 4 renders instead of one each."""
+        if model.polar:
+            raise ValueError("canvas: cartesian models only")
+        if not (isinstance(margin, (int, np.integer)) and margin >= 0):
+            raise ValueError(f"canvas: margin must be an integer >= 0, got {margin!r}")
+        t = self.table(model)
+        truth = np.asarray(truth, dtype=float)
+        n, q = self.rows.size, self.sensor.pixels + 2 * int(margin)
+        images = np.empty((n, q, q))
+        s_maj = np.ascontiguousarray(np.where(t.major_y, truth[:, 1], truth[:, 0]))
+        s_min = np.ascontiguousarray(np.where(t.major_y, truth[:, 0], truth[:, 1]))
+        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
+        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
+                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, q,
+                          0, n, images, np.empty(n))
+        return images
+
     def _cartesian(self, model, t, truth, images, trunc, b0, b1):
         """Noise-free ``images[b0:b1] (p, p)`` and ``trunc[b0:b1]`` of a cartesian model."""
         p = self.sensor.pixels
