@@ -197,6 +197,25 @@ def run(quick: bool = False) -> list[dict]:
                          note=f"uint16 frame in, {n} subapertures, {BACKGROUND_E:g} e- a pixel "
                               f"of Poisson background added")
 
+    # a refit inline (the frame that ends a period: the profile fit, then what the estimator
+    # builds from it), after the first (which also builds the thin-layer basis, shared by
+    # later calibrations of the same optics): what a live node's background refit costs, so
+    # how late its references are (docs/accuracy.md, "A live node's refit latency")
+    for label, name, s in (("cmf (default, the grid) refit, cartesian full pupil", "cmf", sensor),
+                           ("ml refit, polar full pupil", "ml", polar)):
+        fr = [_frame(s, seed=k)[0] for k in range(4)]
+        c = make_centroider(name, s, pupil_period=10)
+        costs = []
+        for k in range(10 * (3 if quick else 5)):
+            before = c.pupil.fits
+            t0 = time.process_time()
+            c.centroid(fr[k % 4])
+            if c.pupil.fits != before and before > 0:
+                costs.append(time.process_time() - t0)
+        results.append({"name": label, "value": round(float(np.median(costs)), 3), "unit": "s CPU",
+                        "target": "", "note": f"median of {len(costs)} refits after the first "
+                                              f"(process CPU of the frame that refits, inline)"})
+
     with tempfile.TemporaryDirectory() as tmp:
         path = _mlp(Path(tmp) / "mlp.onnx")
         c = make_centroider("ann", sensor, model=str(path))
