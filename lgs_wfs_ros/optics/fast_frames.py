@@ -585,21 +585,15 @@ class FastRenderer:
             raise ValueError("canvas: cartesian models only")
         if not (isinstance(margin, (int, np.integer)) and margin >= 0):
             raise ValueError(f"canvas: margin must be an integer >= 0, got {margin!r}")
-        t = self.table(model)
-        truth = np.asarray(truth, dtype=float)
         n, q = self.rows.size, self.sensor.pixels + 2 * int(margin)
         images = np.empty((n, q, q))
-        s_maj = np.ascontiguousarray(np.where(t.major_y, truth[:, 1], truth[:, 0]))
-        s_min = np.ascontiguousarray(np.where(t.major_y, truth[:, 0], truth[:, 1]))
-        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
-        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
-                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, q,
-                          0, n, images, np.empty(n))
+        self._cartesian(model, self.table(model), truth, images, np.empty(n), 0, n)
         return images
 
     def _cartesian(self, model, t, truth, images, trunc, b0, b1):
-        """Noise-free ``images[b0:b1] (p, p)`` and ``trunc[b0:b1]`` of a cartesian model."""
-        p = self.sensor.pixels
+        """Noise-free ``images[b0:b1] (q, q)`` and ``trunc[b0:b1]`` of a cartesian model, on
+        images of any side ``q`` (the block's, or a :meth:`canvas`), centred alike."""
+        p = images.shape[-1]
         truth = np.asarray(truth, dtype=float)
         s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
         s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
