@@ -145,8 +145,8 @@ def test_the_grid_rendered_on_canvases_gives_the_filters_of_one_render_a_positio
     real = GMF._position_images
 
     def off_by_one(self, calibration, canvas=True):
-        for k, img, dx, dy in real(self, calibration, canvas):
-            yield k, np.roll(img, 1, axis=2), np.roll(dx, 1, axis=2), np.roll(dy, 1, axis=2)
+        for k, *images in real(self, calibration, canvas):
+            yield k, *(np.roll(i, 1, axis=2) for i in images)
     monkeypatch.setattr(GMF, "_position_images", off_by_one)
     assert not np.array_equal(c._prepare(c.pupil)["filters"], old["filters"])
 
@@ -187,3 +187,32 @@ def test_quantized_rows_are_the_filters_to_half_a_step():
     err = np.abs(q * scale[..., None] - r)
     assert np.all(err <= 0.5 * scale[..., None] + 1e-18)
     assert np.all(q[1, 2, 0] == 0) and np.all(np.isfinite(scale))
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_the_compiled_build_gives_the_numpy_filters(monkeypatch, detector):
+    """A refit's filters built in one compiled pass a position (kernels.position_filters)
+    are solve_filter's, quantized: the same int16 rows, scales and sums to 1e-12, the same
+    ok; a block without light gets zero rows and is not ok on both paths. Weights of 1 /
+    counts without the variance floor, or the flux column left out, change the rows."""
+    sensor = small(detector)
+    c = table.build("gmf", sensor, {"read_noise_e": 1.5, "background": 2.0})
+    new = c._prepare(c.pupil)
+    with monkeypatch.context() as m:
+        m.setattr(kernels, "AVAILABLE", False)
+        old = c._prepare(c.pupil)
+    np.testing.assert_array_equal(new["filters"], old["filters"])
+    np.testing.assert_allclose(new["scale"], old["scale"], rtol=1e-12)
+    np.testing.assert_allclose(new["rsum"], old["rsum"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(new["ok"], old["ok"])
+    assert new["ok"].all()
+
+    _, *img = next(iter(c._position_images(c.pupil)))
+    img = np.array(img)                                                   # (5, n, p, p)
+    img[:, 3] = 0.0                                                       # a dark block
+    f, s, rs, ok = kernels.position_filters(*img, 0.01, 3.5, 1.0)
+    assert not ok[3] and np.all(f[3] == 0) and np.all(rs[3] == 0) and ok[np.arange(c.n) != 3].all()
+    # a plausibly wrong build: the derivative step off by 2 (gain 2), or no variance floor
+    assert not np.allclose(s, kernels.position_filters(*img, 0.02, 3.5, 1.0)[1], rtol=0.1)
+    assert not np.array_equal(f, kernels.position_filters(*img, 0.01, 0.0, 1e-9)[0])

@@ -26,9 +26,10 @@ two rows, and a second filter's where the second pick moves; :func:`.kernels.gri
 and the calibration's accumulation; at each refit 5 renders per position through the
 simulator's compiled renderer (on cartesian pixels 5 per sub-pixel phase of the grid, on a
 canvas the whole-pixel moves are cropped from: 20 for the default grid instead of 125; a
-full-pupil cartesian refit 4.7 -> 2.2 s CPU, 2026-11-28; ~1.2 s polar) and the filters,
-72 MB in int16 for the full pupil
-(:func:`.kernels.quantize`; one
+full-pupil cartesian refit 4.7 -> 2.2 s CPU, 2026-11-28) and the filters, built in one
+compiled pass a position (:func:`.kernels.position_filters`: the numpy build's int16 rows;
+a refit 2.0 -> 1.0 s CPU cartesian, 2.0 -> 0.9 s polar, 2026-11-28 night), 72 MB in int16
+for the full pupil (:func:`.kernels.quantize`; one
 or two positions' rows, 1 kB a block each, are read each frame, the first asked for three
 blocks ahead: :func:`.kernels.grid_filter`). Refits can run in a
 background thread (``pupil_async``), as for every pupil-calibrated estimator.
@@ -99,20 +100,27 @@ class GMF(TabledCoG):
 
     # -- filters -------------------------------------------------------------------------
     def _prepare(self, calibration) -> dict:
-        """What a (background) refit builds: every position's filters, from ``calibration``."""
-        n, g = self.n, self.positions
+        """What a (background) refit builds: every position's filters, from ``calibration``
+        (one compiled pass a position where numba is: :func:`.kernels.position_filters`)."""
+        n, g, h = self.n, self.positions, DERIVATIVE_STEP
         filters = np.empty((g.size ** 2, n, 2, self.p * self.p), dtype=np.int16)
         scale = np.empty((g.size ** 2, n, 2))
         rsum = np.empty((g.size ** 2, n, 2))
         ok = np.ones(n, dtype=bool)
-        for k, img, dx, dy in self._position_images(calibration):
+        var_add = self.background + self.read_noise ** 2
+        for k, img, xm, xp, ym, yp in self._position_images(calibration):
+            if kernels.AVAILABLE:
+                filters[k], scale[k], rsum[k], good = kernels.position_filters(
+                    img, xm, xp, ym, yp, h, var_add, self.var_floor)
+                ok &= good
+                continue
             img = img.reshape(n, -1)                                     # counts
             flux = img.sum(axis=1)
             unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
-            design = np.stack([dx.reshape(n, -1) * unit, dy.reshape(n, -1) * unit,
+            design = np.stack([((xp - xm) / (2 * h)).reshape(n, -1) * unit,
+                               ((yp - ym) / (2 * h)).reshape(n, -1) * unit,
                                img * unit], axis=2)                       # (n, pp, 3)
-            var = np.maximum(np.maximum(img, 0.0) + self.background + self.read_noise ** 2,
-                             self.var_floor)
+            var = np.maximum(np.maximum(img, 0.0) + var_add, self.var_floor)
             r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
             filters[k], scale[k] = kernels.quantize(r)
             rsum[k] = (filters[k] * scale[k][..., None]).sum(axis=2)
@@ -122,10 +130,11 @@ class GMF(TabledCoG):
                 "bias": calibration.cog_bias()}
 
     def _position_images(self, calibration, canvas: bool = True):
-        """Yield ``(k, img, dx, dy)`` for every grid position ``k`` (``ky G + kx``, at
-        ``(positions[kx], positions[ky])``): the calibration's spots there, counts ``(n, p,
-        p)``, and their derivatives along block x and y (central differences of renders
-        :data:`DERIVATIVE_STEP` apart). On cartesian pixels with the compiled renderer each
+        """Yield ``(k, img, xm, xp, ym, yp)`` for every grid position ``k`` (``ky G + kx``,
+        at ``(positions[kx], positions[ky])``): the calibration's spots there, counts ``(n,
+        p, p)``, and the same spots :data:`DERIVATIVE_STEP` px before and after it along
+        block x and y (their central differences are the derivatives; views of wider
+        canvases where those are rendered). On cartesian pixels with the compiled renderer each
         distinct sub-pixel phase of the grid is rendered once, on a canvas wider than the
         block, and the positions whole pixels from it are crops of that canvas
         (:meth:`..optics.fast_frames.FastRenderer.canvas`: the default 5 x 5 grid, 0.5 px
@@ -136,9 +145,8 @@ class GMF(TabledCoG):
             image_at = self._renders(calibration)
             for ky, kx in np.ndindex(side, side):
                 d = np.tile([g[kx], g[ky]], (n, 1))
-                yield (ky * side + kx, image_at(d),
-                       (image_at(d + [h, 0.0]) - image_at(d - [h, 0.0])) / (2 * h),
-                       (image_at(d + [0.0, h]) - image_at(d - [0.0, h])) / (2 * h))
+                yield (ky * side + kx, image_at(d), image_at(d - [h, 0.0]),
+                       image_at(d + [h, 0.0]), image_at(d - [0.0, h]), image_at(d + [0.0, h]))
             return
         renderer, model, scale = self._fast(calibration)
         whole = np.floor(g + 1e-9).astype(int)              # a position = whole px + phase
@@ -159,9 +167,8 @@ class GMF(TabledCoG):
                     for kx in np.flatnonzero(phase == fx):
                         rows = slice(m - whole[ky], m - whole[ky] + p)     # moved by whole px
                         cols = slice(m - whole[kx], m - whole[kx] + p)
-                        yield (ky * side + kx, c0[:, rows, cols],
-                               (cx1[:, rows, cols] - cx0[:, rows, cols]) / (2 * h),
-                               (cy1[:, rows, cols] - cy0[:, rows, cols]) / (2 * h))
+                        yield (ky * side + kx, c0[:, rows, cols], cx0[:, rows, cols],
+                               cx1[:, rows, cols], cy0[:, rows, cols], cy1[:, rows, cols])
 
     def _fast(self, calibration):
         """``(renderer, model, scale (n, 1, 1))``: the compiled renderer of this layout, the

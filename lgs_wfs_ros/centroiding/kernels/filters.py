@@ -1,5 +1,6 @@
 """Matched-filter passes (:mod:`..cmf`, :mod:`..gmf`): per-block weights times pixels, the
-CMF's filter and flux in one read, and the grid of filters picked by each block's CoG.
+CMF's filter and flux in one read, and the grid of filters picked by each block's CoG; and,
+at a refit, the grid's filters of one position built from its renders in one pass.
 """
 
 from __future__ import annotations
@@ -143,6 +144,97 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = ey
 
 
+def _position_filters_impl(img, xm, xp, ym, yp, h, var_add, floor, filters, scale, rsum, ok):
+    # per block, from its render img and the renders h px either side along x (xm, xp) and
+    # y (ym, yp), all (n, p, p) counts: the design A = [dI/dx, dI/dy, I] / flux, the weights
+    # W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance filter R = M (A^T W
+    # A)^-1 A^T W with M = [[1, 0, 0], [0, 1, 0]] (cmf.solve_filter, the Gram matrix scaled
+    # to a unit diagonal before its inverse), ok where R A = M to 1e-6, then R as int16 rows
+    # with one scale each (blocks.quantize) and the rows' sums. A block without light, or
+    # whose Gram matrix is singular, gets zero rows and ok False
+    n, p = img.shape[0], img.shape[1]
+    pp = p * p
+    a = np.empty((3, pp))
+    w = np.empty(pp)
+    r = np.empty((2, pp))
+    half_step = 0.5 / h
+    for b in range(n):
+        flux = 0.0
+        for i in range(p):
+            for j in range(p):
+                flux += img[b, i, j]
+        unit = 1.0 / flux if flux > 0 else 0.0
+        du = half_step * unit
+        for i in range(p):
+            for j in range(p):
+                k = i * p + j
+                v = img[b, i, j]
+                a[0, k] = (xp[b, i, j] - xm[b, i, j]) * du
+                a[1, k] = (yp[b, i, j] - ym[b, i, j]) * du
+                a[2, k] = v * unit
+                w[k] = 1.0 / max(max(v, 0.0) + var_add, floor)
+        g00 = g01 = g02 = g11 = g12 = g22 = 0.0
+        for k in range(pp):
+            u0 = a[0, k] * w[k]
+            u1 = a[1, k] * w[k]
+            g00 += u0 * a[0, k]
+            g01 += u0 * a[1, k]
+            g02 += u0 * a[2, k]
+            g11 += u1 * a[1, k]
+            g12 += u1 * a[2, k]
+            g22 += a[2, k] * w[k] * a[2, k]
+        good = flux > 0 and g00 > 0 and g11 > 0 and g22 > 0
+        if good:
+            d0, d1, d2 = np.sqrt(g00), np.sqrt(g11), np.sqrt(g22)
+            s01, s02, s12 = g01 / (d0 * d1), g02 / (d0 * d2), g12 / (d1 * d2)
+            c00 = 1.0 - s12 * s12                           # cofactors of the unit-diagonal
+            c01 = s02 * s12 - s01                           # matrix (symmetric)
+            c02 = s01 * s12 - s02
+            c11 = 1.0 - s02 * s02
+            c12 = s01 * s02 - s12
+            det = c00 + s01 * c01 + s02 * c02
+            good = det > 1e-12 and det < np.inf
+        if not good:
+            ok[b] = False
+            for q in range(2):
+                scale[b, q] = 1.0
+                rsum[b, q] = 0.0
+                for k in range(pp):
+                    filters[b, q, k] = 0
+            continue
+        # rows 0 and 1 of the inverse, unscaled
+        i00, i01, i02 = c00 / det / (d0 * d0), c01 / det / (d0 * d1), c02 / det / (d0 * d2)
+        i11, i12 = c11 / det / (d1 * d1), c12 / det / (d1 * d2)
+        e00 = e01 = e02 = e10 = e11 = e12 = 0.0
+        t0 = 0.0
+        t1 = 0.0
+        for k in range(pp):
+            r0 = (i00 * a[0, k] + i01 * a[1, k] + i02 * a[2, k]) * w[k]
+            r1 = (i01 * a[0, k] + i11 * a[1, k] + i12 * a[2, k]) * w[k]
+            r[0, k] = r0
+            r[1, k] = r1
+            e00 += r0 * a[0, k]
+            e01 += r0 * a[1, k]
+            e02 += r0 * a[2, k]
+            e10 += r1 * a[0, k]
+            e11 += r1 * a[1, k]
+            e12 += r1 * a[2, k]
+            t0 = max(t0, abs(r0))
+            t1 = max(t1, abs(r1))
+        resid = max(abs(e00 - 1.0), abs(e01), abs(e02), abs(e10), abs(e11 - 1.0), abs(e12))
+        ok[b] = resid <= 1e-6
+        for q in range(2):
+            top = t0 if q == 0 else t1
+            sc = top / 32767.0 if top > 0 else 1.0
+            inv = 1.0 / sc
+            scale[b, q] = sc
+            acc = 0.0
+            for k in range(pp):
+                v = np.rint(r[q, k] * inv)
+                filters[b, q, k] = np.int16(v)
+                acc += v
+            rsum[b, q] = acc * sc
+
 if _jit.COMPILED:
     from .blocks import (FRAME_AHEAD, _block_moments, _prefetch_block, _rows_int16,
                          _rows_int16_narrow)
@@ -151,6 +243,10 @@ if _jit.COMPILED:
     _filter_flux = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_filter_flux_impl)
     _filter_flux_q = _jit.numba.njit(cache=True, nogil=True)(_filter_flux_q_impl)
     _grid_filter = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
+    # no reassociation: the sums keep one order whatever the arrays' strides, so crops of a
+    # canvas and whole renders of the same values give the same filters bit for bit
+    _position_filters = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
+        _position_filters_impl)
 
 
 def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
@@ -214,3 +310,28 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
                  np.ascontiguousarray(positions, dtype=np.float64), float(background),
                  int(picks), out, index)
     return out, index
+
+
+def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.ndarray,
+                     yp: np.ndarray, h: float, var_add: float, floor: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The grid's filters of one reference position (:class:`.gmf.GMF`), one compiled pass
+    over the blocks (a refit's filters without numpy's ``(n, p*p, 3)`` temporaries).
+
+    ``img (n, p, p)`` counts of each block's reference at the position, ``xm, xp, ym, yp``
+    the same renders ``h`` px either side along block x and y (float64, any strides: crops
+    of a wider canvas are read in place). Per block: the CMF of :func:`..cmf.solve_filter`
+    with the design ``[(xp - xm) / 2h, (yp - ym) / 2h, img] / sum(img)``, constraint
+    ``[[1, 0, 0], [0, 1, 0]]`` and pixel variances ``max(max(img, 0) + var_add, floor)``,
+    quantized as :func:`.blocks.quantize` does. Returns ``(filters (n, 2, p*p)`` int16,
+    ``scale (n, 2)``, ``rsum (n, 2)`` the sums of ``scale * filters``, ``ok (n,)``: True
+    where ``R A = M`` holds to 1e-6; a block without light or with a singular system gets
+    zero rows and False)."""
+    n, p = img.shape[0], img.shape[1]
+    filters = np.empty((n, 2, p * p), dtype=np.int16)
+    scale = np.empty((n, 2))
+    rsum = np.empty((n, 2))
+    ok = np.empty(n, dtype=np.bool_)
+    _position_filters(img, xm, xp, ym, yp, float(h), float(var_add), float(floor),
+                      filters, scale, rsum, ok)
+    return filters, scale, rsum, ok
