@@ -291,3 +291,31 @@ def test_side_launch_zenith_short_and_long_lines_match_brute_force(detector):
     err = np.abs(img - ref).max(axis=(1, 2)) / ref.max(axis=(1, 2))
     assert err.max() < 5e-4, err
     np.testing.assert_allclose(tr, 1 - ref.sum(axis=(1, 2)), atol=2e-5)
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_compiled_node_weights_are_numpys_bit_for_bit(monkeypatch, detector):
+    """The node weights a model deposits its elements on (compiled where numba is) are the
+    numpy path's bit for bit, for a profile shared by the pupil and one per subaperture
+    (frames drawn from them must not move; an element's variance left out of its moments, or
+    its four weights summed in another order, fails this)."""
+    from lgs_wfs_ros.optics import spots as module
+    if module._deposit_compiled is None:
+        pytest.skip("numba not installed ('fast' extra)")
+    sensor = Sensor(detector=detector, diameter_m=8.0, obstruction_m=1.0, n_subaps=16,
+                    launch_xy_m=(6.0, 0.0))
+    lay = layout(sensor)
+    h = np.linspace(80e3, 110e3, 300)
+    rho = np.exp(-0.5 * ((h - 92e3) / 3e3) ** 2) + 0.5 * np.exp(-0.5 * ((h - 100e3) / 400.0) ** 2)
+    per_subap = rho * (1 + 0.2 * np.random.default_rng(0).random((lay.n_valid, 1)))
+
+    def weights():
+        return [np.concatenate([g["w"].ravel() for g in SpotModel(sensor, lay.r_m, lay.e, h, d).groups])
+                for d in (rho, per_subap)]
+    compiled = weights()
+    with monkeypatch.context() as m:
+        m.setattr(module, "_deposit_compiled", None)
+        reference = weights()
+    for a, b in zip(compiled, reference):
+        assert a.shape == b.shape and np.array_equal(a, b)
+

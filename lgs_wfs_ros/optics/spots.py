@@ -357,10 +357,19 @@ class SpotModel:
     def _deposit(alpha, k0, k, g_c, dg_c, var_h, mass, rows):
         """Node weights ``(g, k)`` from point elements, preserving for every element its
         mass and first three moments (4-point cubic Lagrange weights, with each element's
-        own variance folded into its second and third moments)."""
+        own variance folded into its second and third moments). Compiled where numba is
+        (:func:`_deposit_nodes`, the same numbers bit for bit: 10 ms -> ~1 ms a group)."""
         g = alpha.size
         if rows is not None:                                            # one profile per subaperture
             g_c, dg_c, var_h, mass = g_c[rows], dg_c[rows], var_h[rows], mass[rows]
+        if _deposit_compiled is not None:
+            ne = np.shape(g_c)[-1]
+            out = np.zeros((4, g * k + 1))
+            _deposit_compiled(np.asarray(alpha, dtype=np.float64), np.asarray(k0, dtype=np.int64),
+                              int(k), *(np.broadcast_to(np.asarray(a, dtype=np.float64), (g, ne))
+                                        for a in (g_c, dg_c, var_h, mass)), out)
+            # numpy's order: a zero array plus each offset's sums in turn
+            return (((out[0] + out[1]) + out[2]) + out[3])[:g * k].reshape(g, k)
         x = alpha[:, None] * g_c                                        # element position, nodes
         v = (alpha[:, None] * dg_c) ** 2 * var_h
         m = np.broadcast_to(mass, x.shape)
@@ -548,3 +557,41 @@ def spot_images(sensor: Sensor, r_m, e, altitude_m, density, shift_px) -> tuple[
 
 __all__ = ["SpotModel", "spot_images", "elongation_px", "linear_elongation_arcsec", "NO_LIGHT",
            "exact_elongation_arcsec", "light_centroid_px", "NODES_PER_PX", "SIGMA_PER_FWHM"]
+
+
+def _deposit_nodes(alpha, k0, k, g_c, dg_c, var_h, mass, out):
+    # ProfileSpots._deposit's sums, compiled: out[o, r k + j] (o = 0..3 for node offsets
+    # -1..2, last column the overflow) accumulates element by element in numpy's order (rows,
+    # then elements; each offset's bincount in its own row), with the same float expressions
+    # (no fastmath), so the caller's sum of the four rows equals numpy's bit for bit. The
+    # element arrays are (g, E) (broadcast views where a profile is shared)
+    g = alpha.shape[0]
+    ne = g_c.shape[1]
+    over = g * k
+    for r in range(g):
+        a = alpha[r]
+        for e in range(ne):
+            x = a * g_c[r, e]
+            d = a * dg_c[r, e]
+            v = d * d * var_h[r, e]
+            m = mass[r, e]
+            left = np.floor(x)
+            t = x - left
+            t2 = t * t + v
+            t3 = t * (t * t + 3 * v)
+            j = np.int64(left) - k0[r] - 1                  # the node of offset -1
+            base = r * k
+            out[0, base + j if 0 <= j < k else over] += m * (-(t3 - 3 * t2 + 2 * t) / 6)
+            j += 1
+            out[1, base + j if 0 <= j < k else over] += m * ((t3 - 2 * t2 - t + 2) / 2)
+            j += 1
+            out[2, base + j if 0 <= j < k else over] += m * (-(t3 - t2 - 2 * t) / 2)
+            j += 1
+            out[3, base + j if 0 <= j < k else over] += m * ((t3 - t) / 6)
+
+
+try:                                   # optional: the 'fast' extra
+    import numba as _numba
+    _deposit_compiled = _numba.njit(cache=True, nogil=True)(_deposit_nodes)
+except ImportError:                    # pragma: no cover - exercised where it is absent
+    _deposit_compiled = None
