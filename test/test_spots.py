@@ -319,3 +319,26 @@ def test_compiled_node_weights_are_numpys_bit_for_bit(monkeypatch, detector):
     for a, b in zip(compiled, reference):
         assert a.shape == b.shape and np.array_equal(a, b)
 
+
+
+def test_polar_marginals_are_the_images_sums_without_the_images():
+    """SpotModel.marginals gives each polar spot's column sums (along local x) and row sums
+    (along local y) of the images it would render, to rounding, at shifts on and off the
+    pixel grid and for truncated spots; the two are told apart (swapped, they differ); a
+    cartesian model refuses (its spots are not separable)."""
+    sensor = Sensor(detector="polar", diameter_m=8.0, obstruction_m=1.0, n_subaps=16,
+                    launch_xy_m=(6.0, 0.0))
+    lay = layout(sensor)
+    h = np.linspace(80e3, 110e3, 300)
+    rho = np.exp(-0.5 * ((h - 90e3) / 4e3) ** 2)
+    model = SpotModel(sensor, lay.r_m, lay.e, h, rho, max_shift_px=2.0)
+    shift = np.random.default_rng(3).uniform(-2.0, 2.0, (lay.n_valid, 2))
+    img, trunc = model.images(shift)
+    m = model.marginals(shift)
+    assert trunc.max() > 1e-4                       # some light leaves the field
+    np.testing.assert_allclose(m[:, 0], img.sum(axis=1), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(m[:, 1], img.sum(axis=2), rtol=0, atol=1e-14)
+    assert np.abs(m[:, 0] - m[:, 1]).max() > 0.05
+    with pytest.raises(ValueError, match="polar"):
+        SpotModel(Sensor(detector="cartesian", diameter_m=8.0, obstruction_m=1.0, n_subaps=16),
+                  np.array([3.0]), np.array([[1.0, 0.0]]), h, rho).marginals(np.zeros((1, 2)))

@@ -72,10 +72,8 @@ class Tables:
         wide = p + 2 * self.margin
         spots = spots_of(sensor.replace(pixels=wide))
         marg = np.empty((spots.n, 2, phases, wide))
-        for j in range(phases):
-            img = spots.image_at(np.full((spots.n, 2), j * self.step))   # (n, w, w) [v, u]
-            marg[:, 0, j] = img.sum(axis=1)
-            marg[:, 1, j] = img.sum(axis=2)
+        for j in range(phases):                 # the spots' column and row sums, (n, 2, w)
+            marg[:, :, j] = spots.marginals_at(np.full((spots.n, 2), j * self.step))
         # phase 0 is the spot at the true centre: its CoG in the field is the calibrated
         # CoG's bias (what pupil.cog_bias gives, without rendering the reference again)
         centred = marg[:, :, 0, self.margin:self.margin + p]

@@ -127,6 +127,11 @@ class ProfileSpots:
         img, _ = self.model.images(shift_to_detector(self.sensor, self.e, shift_block))
         return img
 
+    def marginals_at(self, shift_block: np.ndarray) -> np.ndarray:
+        """``(n, 2, p)`` column and row sums of :meth:`image_at`'s images (polar detector:
+        :meth:`.spots.SpotModel.marginals`, no image formed)."""
+        return self.model.marginals(shift_to_detector(self.sensor, self.e, shift_block))
+
     def reference(self, h: float = 0.01, image: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(image, d/dx, d/dy)`` at zero shift, unit light, block axes (central differences

@@ -436,22 +436,46 @@ class SpotModel:
         trunc = 1.0 - img.reshape(self.n, -1).sum(axis=1)
         return img, np.clip(trunc, 0.0, 1.0)
 
-    def _render(self, g, s_maj, s_min):
+    def marginals(self, shift_px) -> np.ndarray:
+        """``(n, 2, p)`` float64: each polar spot's column sums (``[:, 0]``, along local x)
+        and row sums (``[:, 1]``, along local y), what :meth:`images`' ``img.sum(axis=1)``
+        and ``img.sum(axis=2)`` give to rounding, without forming the images: a polar spot
+        is the outer product of its line along e and its core across (the likelihood
+        tables of :mod:`..centroiding.ml` need only these). ``shift_px (n, 2)`` as for
+        :meth:`images`."""
+        if not self.polar:
+            raise ValueError("marginals: polar models only (a cartesian spot is not separable)")
+        s = _check_shift(shift_px, self.n)
+        if np.any(np.abs(s) > self.max_shift_px + 1e-9):
+            raise ValueError(f"|shift| up to {np.abs(s).max():.3g} px exceeds max_shift_px="
+                             f"{self.max_shift_px} this model was built for")
+        s = detector_to_local(s, self.e)
+        out = np.empty((self.n, 2, self.sensor.pixels))
+        for g in self.groups:
+            line, gmin = self._polar_lines(g, s[g["idx"], 0], s[g["idx"], 1])
+            line = np.maximum(line, 0.0)          # as images() clamps (the core is >= 0)
+            out[g["idx"], 0] = line * gmin.sum(axis=1)[:, None]
+            out[g["idx"], 1] = gmin * line.sum(axis=1)[:, None]
+        return out
+
+    def _polar_lines(self, g, s_maj, s_min):
+        """``(line (g, p), core (g, p))``: a polar group's light per pixel along local x
+        (the line along e) and along local y (the core across it)."""
         p, m, sig = self.sensor.pixels, g["m"], self.sigma_px
-        c = (p - 1) / 2.0
-        w = g["w"]
-        nk = w.shape[1]
+        nk = g["w"].shape[1]
         v = self._edge_cdf(g, s_maj)
+        # cumulative light of the line at the p + 1 pixel edges: a correlation of V with w
+        win = sliding_window_view(v, nk, axis=1)[:, ::m][:, :p + 1]       # (g, p + 1, K)
+        cum = np.matmul(win, g["w"][:, ::-1, None])[:, :, 0]
         jm = np.arange(p + 1) - 0.5
+        emin = ndtr((jm[None, :] - ((p - 1) / 2.0 + s_min)[:, None]) / sig)
+        return cum[:, 1:] - cum[:, :-1], emin[:, 1:] - emin[:, :-1]
+
+    def _render(self, g, s_maj, s_min):
         if self.polar:
-            # cumulative light of the line at the p + 1 pixel edges: a correlation of V with w
-            win = sliding_window_view(v, nk, axis=1)[:, ::m][:, :p + 1]   # (g, p + 1, K)
-            cum = np.matmul(win, w[:, ::-1, None])[:, :, 0]
-            line = cum[:, 1:] - cum[:, :-1]                              # (g, p) along local x
-            b = c + s_min
-            emin = ndtr((jm[None, :] - b[:, None]) / sig)
-            gmin = emin[:, 1:] - emin[:, :-1]                             # (g, p) along local y
+            line, gmin = self._polar_lines(g, s_maj, s_min)
             return gmin[:, :, None] * line[:, None, :]                    # rows local y, cols local x
+        v = self._edge_cdf(g, s_maj)
         gmaj = self._major_lines(g, v)
         gmin = self._minor_lines(g, s_min)
         im = np.matmul(gmin.transpose(0, 2, 1), gmaj)                # (g, minor, major), float32
