@@ -157,7 +157,7 @@ class GMF(TabledCoG):
             # counts of the spots at (fx, fy) px on the canvas, through float32 as the frame
             # path writes them
             c = renderer.canvas(model, np.tile([fx, fy], (n, 1)), m)
-            return c.astype(np.float32).astype(np.float64) * scale
+            return c.astype(np.float32) * scale        # float64: the float32 values, exactly
 
         for fy in np.unique(phase):
             for fx in np.unique(phase):
