@@ -334,8 +334,12 @@ class ANN(Centroider):
 
     def _along_moved(self, t: float) -> np.ndarray:
         """``(n, p)`` float32: the bins (:meth:`_along`) of each block's noise-free calibrated
-        reference moved by ``t`` px along them (options ``recentre`` and ``linearize``)."""
-        return self._along(self.pupil.image_at(t * np.asarray(self._bins_direction(), dtype=np.float64)))
+        reference moved by ``t`` px along them (options ``recentre`` and ``linearize``; on a
+        polar detector the column sums straight from the spot model, no image formed)."""
+        shift = t * np.asarray(self._bins_direction(), dtype=np.float64)
+        if self._bins is None:
+            return np.ascontiguousarray(self.pupil.marginals_at(shift)[:, 0], dtype=np.float32)
+        return self._along(self.pupil.image_at(shift))
 
     def _bins_direction(self) -> np.ndarray:
         """``(n, 2)`` block axes, px: the shift that moves the light one bin along the bins

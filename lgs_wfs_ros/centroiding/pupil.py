@@ -718,6 +718,11 @@ class PupilCalibration:
         ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
         return self.spots().image_at(shift_block) * self._to_counts(self.reference_image())
 
+    def marginals_at(self, shift_block: np.ndarray) -> np.ndarray:
+        """``(n, 2, p)``: the column and row sums of :meth:`image_at`'s images, polar
+        detector only (:meth:`.model_spot.ProfileSpots.marginals_at`: no image formed)."""
+        return self.spots().marginals_at(shift_block) * self._to_counts(self.reference_image())
+
     def _flux(self) -> np.ndarray:
         """``(n,)`` the observed mean flux of each subaperture (``sensor.photons`` before
         the first fit)."""
