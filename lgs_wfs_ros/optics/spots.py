@@ -509,10 +509,14 @@ class SpotModel:
         tab, dtab, z0, inv_h = _pixel_core_table(self.sigma_px)
         t = -(c + g["b"] + s_min[:, None] + z0) * inv_h                  # (g, K)
         y0 = np.floor(t)
-        phi = (t - y0).astype(np.float32)[:, :, None]
+        phi = (t - y0).astype(np.float32)
+        if _minor_compiled is not None:              # the same float32 numbers, no index array
+            gmin = np.empty(t.shape + (p,), dtype=np.float32)
+            _minor_compiled(y0.astype(np.intp), phi, int(inv_h), tab, dtab, gmin)
+            return gmin
         i = y0.astype(np.intp)[:, :, None] + (np.arange(p) * int(inv_h))[None, None, :]
         gmin = tab.take(i, mode="clip")
-        gmin += phi * dtab.take(i, mode="clip")
+        gmin += phi[:, :, None] * dtab.take(i, mode="clip")
         return gmin
 
     def cog_grid(self, t) -> np.ndarray:
@@ -614,8 +618,24 @@ def _deposit_nodes(alpha, k0, k, g_c, dg_c, var_h, mass, out):
             out[3, base + j if 0 <= j < k else over] += m * ((t3 - t) / 6)
 
 
+def _minor_table(y0, phi, step, tab, dtab, out):
+    # SpotModel._minor_lines' lookups, compiled: out[g, k, j] = tab[i] + phi[g, k] dtab[i]
+    # with i = y0[g, k] + j step clipped to the table (numpy's take, mode "clip"), in float32
+    # as numpy computes it (the product rounded, then the sum), without the (g, K, p) index
+    # array
+    last = tab.shape[0] - 1
+    for a in range(out.shape[0]):
+        for k in range(out.shape[1]):
+            f = phi[a, k]
+            i0 = y0[a, k]
+            for j in range(out.shape[2]):
+                i = min(max(i0 + j * step, 0), last)
+                out[a, k, j] = tab[i] + np.float32(f * dtab[i])
+
+
 try:                                   # optional: the 'fast' extra
     import numba as _numba
     _deposit_compiled = _numba.njit(cache=True, nogil=True)(_deposit_nodes)
+    _minor_compiled = _numba.njit(cache=True, nogil=True)(_minor_table)
 except ImportError:                    # pragma: no cover - exercised where it is absent
-    _deposit_compiled = None
+    _deposit_compiled = _minor_compiled = None
