@@ -356,7 +356,7 @@ class ANN(Centroider):
         CoG whatever the option)."""
         if not (self._debias or self.marginals):
             return None
-        ref = self.pupil.counts()[0]
+        ref = self.pupil.reference_counts()
         if self._debias:
             reading = self._reading(ref)
         else:

@@ -93,7 +93,7 @@ class Correlation(Centroider):
     def _take_pupil_reference(self) -> None:
         """The calibration's current references (counts plus the background), and the drift
         of their reading to follow (:meth:`Centroider._follow_drift`)."""
-        self.ref.set(self.pupil.counts()[0] + self.background)
+        self.ref.set(self.pupil.reference_counts() + self.background)
         self._follow_drift(lambda counts: self._map_reading(counts + self.background))
 
     def set_reference(self, images) -> None:
