@@ -216,3 +216,28 @@ def test_the_compiled_build_gives_the_numpy_filters(monkeypatch, detector):
     # a plausibly wrong build: the derivative step off by 2 (gain 2), or no variance floor
     assert not np.allclose(s, kernels.position_filters(*img, 0.02, 3.5, 1.0)[1], rtol=0.1)
     assert not np.array_equal(f, kernels.position_filters(*img, 0.01, 0.0, 1e-9)[0])
+
+
+@pytest.mark.skipif(not (fast_frames.AVAILABLE and kernels.AVAILABLE),
+                    reason="numba not installed ('fast' extra)")
+def test_polar_filters_from_lines_are_those_of_the_renders(monkeypatch):
+    """On a polar detector a refit builds the grid's filters from each spot's line and core
+    (kernels.separable_filters on FastRenderer.polar_lines) instead of 125 renders: the
+    same int16 rows, scales, sums and ok bit for bit, on the default grid and a 3 x 3 one;
+    a core moved a pixel changes them."""
+    sensor = small("polar", read_noise_e=1.0)
+    for opts in ({}, {"grid": 3, "spacing_px": 1.0}):
+        c = table.build("gmf", sensor, opts)
+        new = c._prepare(c.pupil)
+        with monkeypatch.context() as m:
+            m.setattr(GMF, "_separable", lambda self: False)
+            old = c._prepare(c.pupil)
+        for key in ("filters", "scale", "rsum", "ok"):
+            np.testing.assert_array_equal(new[key], old[key])
+    real = GMF._position_lines
+
+    def moved(self, calibration):
+        for k, lines, cores, counts in real(self, calibration):
+            yield k, lines, np.roll(cores, 1, axis=2), counts
+    monkeypatch.setattr(GMF, "_position_lines", moved)
+    assert not np.array_equal(c._prepare(c.pupil)["filters"], old["filters"])

@@ -267,6 +267,21 @@ def _render_polar(lines, lines2, wb, d0, s_maj, s_min, kp, kd, q, p, rows, cols,
     return sat
 
 
+def _polar_lines(lines, d0, s_maj, s_min, kp, kd, q, p, line, core):
+    """Compiled: each valid block's line along local x (``line (n, p)``) and core along
+    local y (``core (n, p)``) from the line tables, as :func:`_render_polar` forms them: a
+    noise-free polar block at unit light is ``float32(core[a] * line[c])``."""
+    cum = np.empty(p + 1)
+    emin = np.empty(p + 1)
+    half = p / 2.0
+    for i in range(line.shape[0]):
+        _hermite_lines(lines[i], -H * half - d0 - H * s_maj[i], p + 1, cum)
+        _hermite_edges(kp, kd, q - H * half - H * s_min[i], p + 1, H, emin)
+        for j in range(p):
+            line[i, j] = max(cum[j + 1] - cum[j], 0.0)
+            core[i, j] = max(emin[j + 1] - emin[j], 0.0)
+
+
 def _expose_blocks(images, p, rows, cols, b0, b1, photons, per_field, noise, integer,
                    seed, frame):
     """Compiled: ``images[b0:b1] (n, p, p)`` -> counts written into their blocks of
@@ -359,6 +374,7 @@ if AVAILABLE:
     _queue_row = numba.njit(cache=True, nogil=True, inline="always")(_queue_row)
     _zero_blocks = _jit(_zero_blocks)
     _render_polar = _jit(_render_polar)
+    _polar_lines = _jit(_polar_lines)
     _expose_blocks = _jit(_expose_blocks)
     _render_cartesian = _jit(_render_cartesian)
 
@@ -572,6 +588,23 @@ class FastRenderer:
         sat = self._chunks(chunk, seed)
         _zero_blocks(out, self.zrows, self.zcols, p)
         return trunc, int(sat)
+
+    def polar_lines(self, model: SpotModel, truth) -> tuple[np.ndarray, np.ndarray]:
+        """``(line (n, p), core (n, p))`` float64: each noise-free unit-light polar spot
+        displaced by ``truth (n, 2)`` px (detector axes) as its line along local x and its
+        core along local y; :meth:`render` (noise off, ``photons`` 1, not per field) writes
+        ``float32(core[:, a] * line[:, c])`` at row ``a``, column ``c`` of each block, so
+        the block's images at several shifts come from 1-D passes alone."""
+        if not model.polar:
+            raise ValueError("polar_lines: polar models only")
+        t = self.table(model)
+        loc = detector_to_local(np.asarray(truth, dtype=float), self.e)
+        kp, kd, q = core_kernels(model.sigma_px)
+        n, p = self.rows.size, self.sensor.pixels
+        line, core = np.empty((n, p)), np.empty((n, p))
+        _polar_lines(t.lines, t.d0, np.ascontiguousarray(loc[:, 0]),
+                     np.ascontiguousarray(loc[:, 1]), kp, kd, q, p, line, core)
+        return line, core
 
     def canvas(self, model: SpotModel, truth, margin: int) -> np.ndarray:
         """``(n, p + 2 margin, p + 2 margin)`` float64: the noise-free unit-light spots of a

@@ -144,96 +144,129 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = ey
 
 
+def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r,
+                      filters, scale, rsum):
+    # one block, from its render img and the renders h px either side along x (xm, xp) and
+    # y (ym, yp), each (p, p) counts (half_step = 1 / 2h): the design A = [dI/dx, dI/dy,
+    # I] / flux, the weights W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance
+    # filter R = M (A^T W A)^-1 A^T W with M = [[1, 0, 0], [0, 1, 0]] (cmf.solve_filter,
+    # the Gram matrix scaled to a unit diagonal before its inverse), then R as int16 rows
+    # with one scale each (blocks.quantize) into filters (2, p*p), scale (2,), rsum (2,),
+    # the rows' sums; a, w, r scratch (3, p*p), (p*p,), (2, p*p). Returns True where
+    # R A = M to 1e-6; a block without light, or whose Gram matrix is singular, gets zero
+    # rows and False
+    pp = p * p
+    flux = 0.0
+    for i in range(p):
+        for j in range(p):
+            flux += img[i, j]
+    unit = 1.0 / flux if flux > 0 else 0.0
+    du = half_step * unit
+    for i in range(p):
+        for j in range(p):
+            k = i * p + j
+            v = img[i, j]
+            a[0, k] = (xp[i, j] - xm[i, j]) * du
+            a[1, k] = (yp[i, j] - ym[i, j]) * du
+            a[2, k] = v * unit
+            w[k] = 1.0 / max(max(v, 0.0) + var_add, floor)
+    g00 = g01 = g02 = g11 = g12 = g22 = 0.0
+    for k in range(pp):
+        u0 = a[0, k] * w[k]
+        u1 = a[1, k] * w[k]
+        g00 += u0 * a[0, k]
+        g01 += u0 * a[1, k]
+        g02 += u0 * a[2, k]
+        g11 += u1 * a[1, k]
+        g12 += u1 * a[2, k]
+        g22 += a[2, k] * w[k] * a[2, k]
+    good = flux > 0 and g00 > 0 and g11 > 0 and g22 > 0
+    d0 = d1 = det = c00 = c01 = c02 = c11 = c12 = 1.0
+    if good:
+        d0, d1, d2 = np.sqrt(g00), np.sqrt(g11), np.sqrt(g22)
+        s01, s02, s12 = g01 / (d0 * d1), g02 / (d0 * d2), g12 / (d1 * d2)
+        c00 = 1.0 - s12 * s12                           # cofactors of the unit-diagonal
+        c01 = s02 * s12 - s01                           # matrix (symmetric)
+        c02 = s01 * s12 - s02
+        c11 = 1.0 - s02 * s02
+        c12 = s01 * s02 - s12
+        det = c00 + s01 * c01 + s02 * c02
+        good = det > 1e-12 and det < np.inf
+    if not good:
+        for q in range(2):
+            scale[q] = 1.0
+            rsum[q] = 0.0
+            for k in range(pp):
+                filters[q, k] = 0
+        return False
+    d2 = np.sqrt(g22)
+    # rows 0 and 1 of the inverse, unscaled
+    i00, i01, i02 = c00 / det / (d0 * d0), c01 / det / (d0 * d1), c02 / det / (d0 * d2)
+    i11, i12 = c11 / det / (d1 * d1), c12 / det / (d1 * d2)
+    e00 = e01 = e02 = e10 = e11 = e12 = 0.0
+    t0 = 0.0
+    t1 = 0.0
+    for k in range(pp):
+        r0 = (i00 * a[0, k] + i01 * a[1, k] + i02 * a[2, k]) * w[k]
+        r1 = (i01 * a[0, k] + i11 * a[1, k] + i12 * a[2, k]) * w[k]
+        r[0, k] = r0
+        r[1, k] = r1
+        e00 += r0 * a[0, k]
+        e01 += r0 * a[1, k]
+        e02 += r0 * a[2, k]
+        e10 += r1 * a[0, k]
+        e11 += r1 * a[1, k]
+        e12 += r1 * a[2, k]
+        t0 = max(t0, abs(r0))
+        t1 = max(t1, abs(r1))
+    resid = max(abs(e00 - 1.0), abs(e01), abs(e02), abs(e10), abs(e11 - 1.0), abs(e12))
+    for q in range(2):
+        top = t0 if q == 0 else t1
+        sc = top / 32767.0 if top > 0 else 1.0
+        inv = 1.0 / sc
+        scale[q] = sc
+        acc = 0.0
+        for k in range(pp):
+            v = np.rint(r[q, k] * inv)
+            filters[q, k] = np.int16(v)
+            acc += v
+        rsum[q] = acc * sc
+    return resid <= 1e-6
+
+
 def _position_filters_impl(img, xm, xp, ym, yp, h, var_add, floor, filters, scale, rsum, ok):
-    # per block, from its render img and the renders h px either side along x (xm, xp) and
-    # y (ym, yp), all (n, p, p) counts: the design A = [dI/dx, dI/dy, I] / flux, the weights
-    # W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance filter R = M (A^T W
-    # A)^-1 A^T W with M = [[1, 0, 0], [0, 1, 0]] (cmf.solve_filter, the Gram matrix scaled
-    # to a unit diagonal before its inverse), ok where R A = M to 1e-6, then R as int16 rows
-    # with one scale each (blocks.quantize) and the rows' sums. A block without light, or
-    # whose Gram matrix is singular, gets zero rows and ok False
+    # every block through _block_solve, its five renders read in place (n, p, p), any
+    # strides (crops of a wider canvas)
     n, p = img.shape[0], img.shape[1]
     pp = p * p
     a = np.empty((3, pp))
     w = np.empty(pp)
     r = np.empty((2, pp))
-    half_step = 0.5 / h
     for b in range(n):
-        flux = 0.0
-        for i in range(p):
-            for j in range(p):
-                flux += img[b, i, j]
-        unit = 1.0 / flux if flux > 0 else 0.0
-        du = half_step * unit
-        for i in range(p):
-            for j in range(p):
-                k = i * p + j
-                v = img[b, i, j]
-                a[0, k] = (xp[b, i, j] - xm[b, i, j]) * du
-                a[1, k] = (yp[b, i, j] - ym[b, i, j]) * du
-                a[2, k] = v * unit
-                w[k] = 1.0 / max(max(v, 0.0) + var_add, floor)
-        g00 = g01 = g02 = g11 = g12 = g22 = 0.0
-        for k in range(pp):
-            u0 = a[0, k] * w[k]
-            u1 = a[1, k] * w[k]
-            g00 += u0 * a[0, k]
-            g01 += u0 * a[1, k]
-            g02 += u0 * a[2, k]
-            g11 += u1 * a[1, k]
-            g12 += u1 * a[2, k]
-            g22 += a[2, k] * w[k] * a[2, k]
-        good = flux > 0 and g00 > 0 and g11 > 0 and g22 > 0
-        if good:
-            d0, d1, d2 = np.sqrt(g00), np.sqrt(g11), np.sqrt(g22)
-            s01, s02, s12 = g01 / (d0 * d1), g02 / (d0 * d2), g12 / (d1 * d2)
-            c00 = 1.0 - s12 * s12                           # cofactors of the unit-diagonal
-            c01 = s02 * s12 - s01                           # matrix (symmetric)
-            c02 = s01 * s12 - s02
-            c11 = 1.0 - s02 * s02
-            c12 = s01 * s02 - s12
-            det = c00 + s01 * c01 + s02 * c02
-            good = det > 1e-12 and det < np.inf
-        if not good:
-            ok[b] = False
-            for q in range(2):
-                scale[b, q] = 1.0
-                rsum[b, q] = 0.0
-                for k in range(pp):
-                    filters[b, q, k] = 0
-            continue
-        # rows 0 and 1 of the inverse, unscaled
-        i00, i01, i02 = c00 / det / (d0 * d0), c01 / det / (d0 * d1), c02 / det / (d0 * d2)
-        i11, i12 = c11 / det / (d1 * d1), c12 / det / (d1 * d2)
-        e00 = e01 = e02 = e10 = e11 = e12 = 0.0
-        t0 = 0.0
-        t1 = 0.0
-        for k in range(pp):
-            r0 = (i00 * a[0, k] + i01 * a[1, k] + i02 * a[2, k]) * w[k]
-            r1 = (i01 * a[0, k] + i11 * a[1, k] + i12 * a[2, k]) * w[k]
-            r[0, k] = r0
-            r[1, k] = r1
-            e00 += r0 * a[0, k]
-            e01 += r0 * a[1, k]
-            e02 += r0 * a[2, k]
-            e10 += r1 * a[0, k]
-            e11 += r1 * a[1, k]
-            e12 += r1 * a[2, k]
-            t0 = max(t0, abs(r0))
-            t1 = max(t1, abs(r1))
-        resid = max(abs(e00 - 1.0), abs(e01), abs(e02), abs(e10), abs(e11 - 1.0), abs(e12))
-        ok[b] = resid <= 1e-6
-        for q in range(2):
-            top = t0 if q == 0 else t1
-            sc = top / 32767.0 if top > 0 else 1.0
-            inv = 1.0 / sc
-            scale[b, q] = sc
-            acc = 0.0
-            for k in range(pp):
-                v = np.rint(r[q, k] * inv)
-                filters[b, q, k] = np.int16(v)
-                acc += v
-            rsum[b, q] = acc * sc
+        ok[b] = _block_solve(img[b], xm[b], xp[b], ym[b], yp[b], p, 0.5 / h, var_add, floor,
+                             a, w, r, filters[b], scale[b], rsum[b])
+
+
+def _separable_filters_impl(lines, cores, counts, h, var_add, floor, filters, scale, rsum, ok):
+    # every block through _block_solve, its five renders formed from separable spots: render
+    # k's pixel (i, j) is float32(cores[k, b, i] lines[k, b, j]) times counts[b], as the
+    # polar renderer writes a noise-free block (FastRenderer.polar_lines) and the frame path
+    # scales it (renders in the order img, xm, xp, ym, yp)
+    n, p = lines.shape[1], lines.shape[2]
+    pp = p * p
+    a = np.empty((3, pp))
+    w = np.empty(pp)
+    r = np.empty((2, pp))
+    im = np.empty((5, p, p))
+    for b in range(n):
+        c = counts[b]
+        for k in range(5):
+            for i in range(p):
+                ck = cores[k, b, i]
+                for j in range(p):
+                    im[k, i, j] = np.float64(np.float32(ck * lines[k, b, j])) * c
+        ok[b] = _block_solve(im[0], im[1], im[2], im[3], im[4], p, 0.5 / h, var_add, floor,
+                             a, w, r, filters[b], scale[b], rsum[b])
 
 if _jit.COMPILED:
     from .blocks import (FRAME_AHEAD, _block_moments, _prefetch_block, _rows_int16,
@@ -245,8 +278,12 @@ if _jit.COMPILED:
     _grid_filter = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
     # no reassociation: the sums keep one order whatever the arrays' strides, so crops of a
     # canvas and whole renders of the same values give the same filters bit for bit
+    _block_solve = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
+        _block_solve_impl)
     _position_filters = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
         _position_filters_impl)
+    _separable_filters = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
+        _separable_filters_impl)
 
 
 def block_contract(frame: np.ndarray, origins: np.ndarray, weights: np.ndarray,
@@ -334,4 +371,28 @@ def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.nda
     ok = np.empty(n, dtype=np.bool_)
     _position_filters(img, xm, xp, ym, yp, float(h), float(var_add), float(floor),
                       filters, scale, rsum, ok)
+    return filters, scale, rsum, ok
+
+
+def separable_filters(lines: np.ndarray, cores: np.ndarray, counts: np.ndarray, h: float,
+                      var_add: float, floor: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`position_filters` for separable spots (a polar detector), without the images:
+    ``lines, cores (5, n, p)`` the renders' lines along block x and cores along block y
+    (:meth:`..optics.fast_frames.FastRenderer.polar_lines`) in the order image, ``-h`` and
+    ``+h`` along x, ``-h`` and ``+h`` along y; render ``k``'s pixel ``(i, j)`` is
+    ``float32(cores[k, :, i] lines[k, :, j]) counts`` (``counts (n,)``: unit light to
+    counts), the values the frame path's renders give. Returns what
+    :func:`position_filters` returns for those renders, bit for bit."""
+    k, n, p = lines.shape
+    if k != 5 or cores.shape != lines.shape or np.shape(counts) != (n,):
+        raise ValueError("separable_filters: lines and cores (5, n, p), counts (n,)")
+    filters = np.empty((n, 2, p * p), dtype=np.int16)
+    scale = np.empty((n, 2))
+    rsum = np.empty((n, 2))
+    ok = np.empty(n, dtype=np.bool_)
+    _separable_filters(np.ascontiguousarray(lines, dtype=np.float64),
+                       np.ascontiguousarray(cores, dtype=np.float64),
+                       np.ascontiguousarray(counts, dtype=np.float64), float(h), float(var_add),
+                       float(floor), filters, scale, rsum, ok)
     return filters, scale, rsum, ok
