@@ -22,18 +22,18 @@ squared, floored at ``var_floor``. Spots are separable or not: the same code run
 and cartesian pixels.
 
 Cost: per frame one compiled pass per block (the CoG's moments, then the chosen filter's
-two rows, and a second filter's where the second pick moves; :func:`.kernels.grid_filter`)
-and the calibration's accumulation; at each refit 5 renders per position through the
-simulator's compiled renderer (on cartesian pixels 5 per sub-pixel phase of the grid, on a
-canvas the whole-pixel moves are cropped from: 20 for the default grid instead of 125; a
-full-pupil cartesian refit 4.7 -> 2.2 s CPU, 2026-11-28; on polar pixels no render at
-all: each spot's line and core, 1-D passes, :meth:`GMF._position_lines`) and the filters, built in one
-compiled pass a position (:func:`.kernels.position_filters`: the numpy build's int16 rows;
-a refit 2.0 -> 1.0 s CPU cartesian, 2.0 -> 0.9 s polar, 2026-11-28 night), 72 MB in int16
-for the full pupil (:func:`.kernels.quantize`; one
-or two positions' rows, 1 kB a block each, are read each frame, the first asked for three
-blocks ahead: :func:`.kernels.grid_filter`). Refits can run in a
-background thread (``pupil_async``), as for every pupil-calibrated estimator.
+two rows, and a second filter's where the second pick moves; :func:`.kernels.grid_filter`:
+one or two positions' rows, 1 kB a block each, the first asked for three blocks ahead) and
+the calibration's accumulation. At each refit every position's reference and its
+derivatives (central differences of renders through the simulator's compiled renderer):
+on cartesian pixels each sub-pixel phase of the grid rendered once on a wider canvas and
+the whole-pixel moves cropped from it (20 renders instead of 125), on polar pixels each
+spot's line and core alone (:meth:`GMF._position_lines`, no image); then each position's
+filters in one compiled pass (:func:`.kernels.position_filters`,
+:func:`.kernels.separable_filters`), 72 MB in int16 for the full pupil
+(:func:`.kernels.quantize`). A full-pupil refit takes ~0.9 s CPU cartesian, ~0.5 s polar
+(docs/accuracy.md). Refits can run in a background thread (``pupil_async``), as for every
+pupil-calibrated estimator.
 """
 
 from __future__ import annotations
@@ -50,6 +50,23 @@ from .cog import TabledCoG
 
 #: shift of the central differences that give each reference's derivatives, px
 DERIVATIVE_STEP = 0.01
+
+
+def _numpy_filters(img, xm, xp, ym, yp, h, var_add, floor):
+    """:func:`.kernels.position_filters` in numpy (without numba): one grid position's
+    ``(filters (n, 2, p*p) int16, scale (n, 2), rsum (n, 2), ok (n,))`` from its renders
+    ``(n, p, p)`` counts, through :func:`.cmf.solve_filter` and :func:`.kernels.quantize`."""
+    n = img.shape[0]
+    img = img.reshape(n, -1)
+    flux = img.sum(axis=1)
+    unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
+    design = np.stack([((xp - xm) / (2 * h)).reshape(n, -1) * unit,
+                       ((yp - ym) / (2 * h)).reshape(n, -1) * unit,
+                       img * unit], axis=2)                               # (n, pp, 3)
+    var = np.maximum(np.maximum(img, 0.0) + var_add, floor)
+    r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
+    filters, scale = kernels.quantize(r)
+    return filters, scale, (filters * scale[..., None]).sum(axis=2), good & (flux > 0)
 
 
 class GMF(TabledCoG):
@@ -102,40 +119,26 @@ class GMF(TabledCoG):
     # -- filters -------------------------------------------------------------------------
     def _prepare(self, calibration) -> dict:
         """What a (background) refit builds: every position's filters, from ``calibration``
-        (one compiled pass a position where numba is: :func:`.kernels.position_filters`)."""
-        n, g, h = self.n, self.positions, DERIVATIVE_STEP
+        (one compiled pass a position where numba is: :func:`.kernels.position_filters`, or
+        :func:`.kernels.separable_filters` from 1-D lines on a polar detector)."""
+        n, g = self.n, self.positions
         filters = np.empty((g.size ** 2, n, 2, self.p * self.p), dtype=np.int16)
         scale = np.empty((g.size ** 2, n, 2))
         rsum = np.empty((g.size ** 2, n, 2))
         ok = np.ones(n, dtype=bool)
-        var_add = self.background + self.read_noise ** 2
+        args = (DERIVATIVE_STEP, self.background + self.read_noise ** 2, self.var_floor)
         if self._separable():
-            for k, lines, cores, counts in self._position_lines(calibration):
-                filters[k], scale[k], rsum[k], good = kernels.separable_filters(
-                    lines, cores, counts, h, var_add, self.var_floor)
-                ok &= good
-            return {"version": calibration.version, "filters": filters, "scale": scale,
-                    "rsum": rsum, "ok": ok, "bias": calibration.cog_bias()}
-        for k, img, xm, xp, ym, yp in self._position_images(calibration):
-            if kernels.AVAILABLE:
-                filters[k], scale[k], rsum[k], good = kernels.position_filters(
-                    img, xm, xp, ym, yp, h, var_add, self.var_floor)
-                ok &= good
-                continue
-            img = img.reshape(n, -1)                                     # counts
-            flux = img.sum(axis=1)
-            unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
-            design = np.stack([((xp - xm) / (2 * h)).reshape(n, -1) * unit,
-                               ((yp - ym) / (2 * h)).reshape(n, -1) * unit,
-                               img * unit], axis=2)                       # (n, pp, 3)
-            var = np.maximum(np.maximum(img, 0.0) + var_add, self.var_floor)
-            r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
-            filters[k], scale[k] = kernels.quantize(r)
-            rsum[k] = (filters[k] * scale[k][..., None]).sum(axis=2)
-            ok &= good & (flux > 0)
+            built = ((k, kernels.separable_filters(lines, cores, counts, *args))
+                     for k, lines, cores, counts in self._position_lines(calibration))
+        else:
+            build = kernels.position_filters if kernels.AVAILABLE else _numpy_filters
+            built = ((k, build(*images, *args))
+                     for k, *images in self._position_images(calibration))
+        for k, (f, sc, rs, good) in built:
+            filters[k], scale[k], rsum[k] = f, sc, rs
+            ok &= good
         return {"version": calibration.version, "filters": filters, "scale": scale,
-                "rsum": rsum, "ok": ok,
-                "bias": calibration.cog_bias()}
+                "rsum": rsum, "ok": ok, "bias": calibration.cog_bias()}
 
     def _position_images(self, calibration, canvas: bool = True):
         """Yield ``(k, img, xm, xp, ym, yp)`` for every grid position ``k`` (``ky G + kx``,
