@@ -26,7 +26,7 @@ def _inspect(args):
 
 def _report(args):
     from .analysis.report import report_bag
-    return report_bag(args.bag, out_dir=args.out, as_json=args.json)
+    return report_bag(args.bag, out_dir=args.out, as_json=args.json, skip=args.skip)
 
 
 def _replay(args):
@@ -125,8 +125,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=2100,
                    help="frames of the paper's single-subaperture case at 700 Hz "
                         "(0: skip that run; default: %(default)s)")
-    p.add_argument("--full-frames", type=int, default=100,
-                   help="frames of the full 60 x 60 pupil run (0: skip it; default: %(default)s)")
+    p.add_argument("--full-frames", type=int, default=980,
+                   help="frames of the full 60 x 60 pupil run, the first 700 (the pupil "
+                        "calibration's warm-up, five refit periods) left out of its table "
+                        "(0: skip it; default: %(default)s)")
     p.add_argument("--full-rate", type=float, default=0.0, metavar="HZ",
                    help="full-pupil frame rate in Hz (0: the highest measured to hold here)")
     p.add_argument("--algorithms", default="cog,cmf,ann", metavar="A,B,...",
@@ -141,6 +143,9 @@ def parser() -> argparse.ArgumentParser:
              positionals=[("bag", "an MCAP bag with frames or slopes and true_slopes")])
     _out_dir(p, "PNGs and summary.json", "print the tables only")
     _flag(p, "--json", "print the JSON summary alone")
+    p.add_argument("--skip", type=int, default=0, metavar="N",
+                   help="leave out the first N exposures, e.g. 140: a pupil-calibrated "
+                        "centroider's first refit period (default 0)")
 
     p = _add(sub, "replay", _replay, "run centroiders over a bag's frames into a new bag (no ROS); "
              "each uses the options recorded in the bag for its algorithm unless --options",

@@ -87,6 +87,32 @@ def test_join_missing_and_duplicate_stamps(tmp_path):
     assert s["mean_euclid"] == pytest.approx(0.2, abs=1e-6)      # the first copy of stamp 5 counts
 
 
+def test_skip_leaves_out_the_first_exposures_by_stamp(tmp_path, capsys):
+    """A warm-up of 10 exposures with error 1 px, then 30 with 0.1 px: skipping 10 scores
+    the 30 alone, joined by stamp (cmf's slopes arrive out of order and lack exposure 12)."""
+    n, warm = 40, 10
+    truths = np.zeros((n, 1, 2))
+    st = T0 + DT * np.arange(n)
+    err = np.where(np.arange(n) < warm, 1.0, 0.1)[:, None, None] * np.array([1.0, 0.0])
+    order = np.r_[np.arange(n)[::-1][:-1], 0]                     # shuffled file order
+    order = order[order != 12]
+    path = write_bag(tmp_path / "w.mcap", single(), truths,
+                     {"cog": (st, truths + err), "cmf": (st[order], (truths + err)[order])})
+    full = report.analyse(bagload.load_bag(path), crb=False)["algorithms"]
+    assert full["cog"]["mean_euclid"] == pytest.approx((warm * 1.0 + 30 * 0.1) / n, abs=1e-6)
+    data = bagload.load_bag(path)
+    cut = bagload.skip_frames(data, warm)
+    assert len(data.truth) == n                                     # not changed in place
+    res = report.analyse(cut, crb=False)["algorithms"]
+    assert res["cog"]["n"] == 30 and res["cmf"]["n"] == 29
+    assert res["cog"]["mean_euclid"] == pytest.approx(0.1, abs=1e-6)
+    assert res["cmf"]["mean_euclid"] == pytest.approx(0.1, abs=1e-6)
+    assert cli.main(["report", str(path), "--skip", str(warm)]) == 0
+    assert f"{n - warm} truths, scored after the first {warm} exposures" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="40 truths"):
+        bagload.skip_frames(data, n)
+
+
 def test_nan_slopes_are_counted_not_averaged(tmp_path):
     truths = np.zeros((4, 1, 2))
     st = T0 + DT * np.arange(4)

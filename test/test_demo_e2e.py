@@ -61,3 +61,19 @@ def test_paper_case_at_700_hz_loses_nothing_and_matches_the_library(tmp_path):
         errs[alg] = metrics.summarize(live - truth)["mean_euclid"]
     print(errs)
     assert all(np.isfinite(v) for v in errs.values())
+
+
+def test_full_pupil_demo_runs_the_defaults_on_measured_profiles(tmp_path):
+    """The full-pupil run shows what a user gets: every centroider at its defaults (no
+    model or reference chosen for it; the calibrated ones refit in the background, as a live
+    node should), on measured profiles that no network was trained on."""
+    from lgs_wfs_ros.ros.demo import WARM_UP, graph_specs
+    specs = graph_specs("full", tmp_path / "f.mcap", WARM_UP + 10, 10.0, ["cog", "cmf", "ann"])
+    params = {s.namespace: s.params for s in specs if s.node == "centroider_node"}
+    assert params == {"cog": {"algorithm": "cog", "cog.pupil_async": True},
+                      "cmf": {"algorithm": "cmf", "cmf.pupil_async": True},
+                      "ann": {"algorithm": "ann", "ann.pupil_async": True}}
+    sim = next(s.params for s in specs if s.node == "simulator_node")
+    assert sim["profile"] == "evolving" and not sim["single_subaperture"]
+    single = graph_specs("single", tmp_path / "s.mcap", 10, 700.0, ["ann"])
+    assert next(s.params for s in single if s.node == "centroider_node")["ann.model"] == "ann_1k"

@@ -19,7 +19,7 @@ not fit in memory. Every user-fixable problem is a :class:`~lgs_wfs_ros.bags.Bag
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -254,6 +254,30 @@ def load_bag(path, *, max_frames: int | None = 0, need_truth: bool = True) -> Ba
     return BagData(str(path), topics, sensor, info, truth, frames, frame_count, segments, changes, sub)
 
 
+def _from_stamp(stream: Stream | None, cut: int) -> Stream | None:
+    if stream is None:
+        return None
+    keep = stream.stamps >= cut
+    return Stream(stream.topic, stream.stamps[keep], stream.log_ns[keep], stream.data[keep])
+
+
+def skip_frames(data: BagData, frames: int) -> BagData:
+    """``data`` without its first ``frames`` exposures (by the truth's stamps): truths,
+    frames and every slope stream from the ``frames``-th truth on, e.g. a pupil
+    calibration's warm-up before its first refit. ``data`` itself is not changed."""
+    if frames < 0:
+        raise ValueError(f"skip: frames must be >= 0, got {frames}")
+    if frames == 0 or data.truth is None:
+        return data
+    stamps = np.unique(data.truth.stamps)
+    if frames >= stamps.size:
+        raise ValueError(f"skip: {frames} frames asked, the bag has {stamps.size} truths")
+    cut = int(stamps[frames])
+    segments = [replace(g, slopes=_from_stamp(g.slopes, cut)) for g in data.segments]
+    return replace(data, truth=_from_stamp(data.truth, cut),
+                               frames=_from_stamp(data.frames, cut), segments=segments)
+
+
 def joined(truth: Stream, slopes: Stream):
     """Align a segment's slopes with the truths by stamp.
 
@@ -268,4 +292,4 @@ def joined(truth: Stream, slopes: Stream):
 
 
 __all__ = ["BagData", "IMAGE", "STRING", "Segment", "Stream", "find_topics", "joined", "load_bag",
-           "read_json_topic", "read_stream", "sensor_from_info", "split_segments"]
+           "read_json_topic", "read_stream", "sensor_from_info", "skip_frames", "split_segments"]

@@ -36,7 +36,7 @@ from scipy.special import ellipe
 
 from ..optics import geometry
 from . import metrics
-from .bagload import BagData, joined, load_bag
+from .bagload import BagData, joined, load_bag, skip_frames
 from .report_plots import TIME_BINS, binned, write_plots
 
 CRB_SAMPLES = 16             # frames the CRB is computed at, at least ...
@@ -337,7 +337,9 @@ def format_report(res: dict) -> str:
         ks = sorted({len(s) for s in sub["selections"]})
         cut = (f" (+ {sub['count']} cut to {'/'.join(map(str, ks)) or '?'} chosen subapertures "
                f"on {sub['topic']})")
-    lines = [f"bag {res['bag']}: {res['frames']} frames{cut}, {res['truths']} truths", ""]
+    skipped = (f", scored after the first {res['skipped_frames']} exposures"
+               if res.get("skipped_frames") else "")
+    lines = [f"bag {res['bag']}: {res['frames']} frames{cut}, {res['truths']} truths{skipped}", ""]
     lines.append(metrics.table(res["algorithms"], mas))
     if res.get("without_slopes"):
         lines.append(f"no slopes recorded: {', '.join(res['without_slopes'])}")
@@ -410,15 +412,19 @@ def public(res: dict) -> dict:
     return clean(res)
 
 
-def report_bag(path, out_dir=None, as_json: bool = False, max_frames: int = 200) -> int:
+def report_bag(path, out_dir=None, as_json: bool = False, max_frames: int = 200,
+               skip: int = 0) -> int:
     """Analyse a bag, print the table (or with ``as_json`` the JSON summary alone).
 
     out_dir: where ``summary.json`` and the PNGs go; default ``<bag stem>_report`` beside
-    the bag, none at all with ``as_json`` and no ``out_dir``. Returns 0. Raises BagError /
-    ValueError for a bag that cannot be analysed.
+    the bag, none at all with ``as_json`` and no ``out_dir``. skip: exposures left out at the
+    start (by the truth's stamps), e.g. a pupil calibration's ``pupil_period`` of warm-up.
+    Returns 0. Raises BagError / ValueError for a bag that cannot be analysed.
     """
-    data = load_bag(path, max_frames=max_frames)
+    data = skip_frames(load_bag(path, max_frames=max_frames + skip), skip)
     res = analyse(data)
+    if skip:
+        res["skipped_frames"] = int(skip)
     if out_dir is None and not as_json:
         out_dir = Path(path).with_name(Path(path).stem + "_report")
     summary = public(res)

@@ -98,7 +98,9 @@ class SimulatorNode(FrameSource, Node):
         parameters.declare(self, "frames", 0, "Frames to publish, then stop (0: forever).",
                            low=0, high=2**31 - 1)
         parameters.declare(self, "wait_for_subscribers", 0, "Wait until this many subscribers "
-                           "listen to frame before the first frame.", low=0, high=1000)
+                           "listen to frame and to sensor before the first frame (a centroider "
+                           "rejects frames that come before the sensor description).",
+                           low=0, high=1000)
         parameters.declare(self, "start_delay_s", 0.0, "Extra wait before the first frame, s.",
                            low=0.0, high=600.0)
         parameters.declare(self, "render_threads", RENDER_THREADS, "Threads that render one "
@@ -173,7 +175,9 @@ class SimulatorNode(FrameSource, Node):
     # -- publishing -------------------------------------------------------------------
     def _wait_to_start(self):
         need = self.get_parameter("wait_for_subscribers").value
-        while need and self._outlet.subscriber_count() < need and not self._stop.is_set():
+        while need and not self._stop.is_set() and (
+                self._outlet.subscriber_count() < need
+                or self._sensor_pub.get_subscription_count() < need):
             time.sleep(0.05)
         delay = self.get_parameter("start_delay_s").value
         self._stop.wait(delay)
