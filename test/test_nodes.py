@@ -676,3 +676,30 @@ def test_the_recorder_names_a_frame_publisher_it_cannot_hear(ros, tmp_path):
     time.sleep(1.5)
     assert rec.incompatible_frame_publishers == {
         "/wfs/camera (it offers best effort, this node needs reliable)"}
+
+
+def test_frames_lost_to_a_slow_inline_refit_are_named_once(ros, monkeypatch):
+    """A gap in the frame stamps right after an inline profile refit that held the frame
+    path is logged once with its cause and cure (pupil_async), then counted; a gap without
+    such a refit is only counted as dropped."""
+    from rclpy.parameter import Parameter
+    from lgs_wfs_ros.centroiding.pupil import PupilCalibration
+    from lgs_wfs_ros.ros.centroider_node import CentroiderNode
+
+    refit = PupilCalibration.refit
+    monkeypatch.setattr(PupilCalibration, "refit", lambda self: (time.sleep(0.2), refit(self))[1])
+    node = ros.add(CentroiderNode(context=ros.context, parameter_overrides=[
+        Parameter("algorithm", value="cmf"), Parameter("cmf.pupil_period", value=3)]))
+    rig = Rig(ros)
+    assert wait_for(lambda: node.sensor == SMALL and node.centroider is not None, timeout=10)
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() > 0, timeout=10)
+    period = round(1e9 / SMALL.frame_rate_hz)
+    condition = "frames dropped after an inline profile refit"
+    for k in (0, 2, 3):                       # a gap before any refit; the third frame refits
+        rig.send(small_frame(SMALL, k), 10**9 + k * period)
+        assert wait_for(lambda: 10**9 + k * period in rig.slopes, timeout=20)
+    assert node.centroider.pupil.fits == 1
+    assert node.counters.dropped == 1 and condition not in node.health.counts
+    rig.send(small_frame(SMALL, 5), 10**9 + 5 * period)        # frame 4 lost after the refit
+    assert wait_for(lambda: 10**9 + 5 * period in rig.slopes, timeout=20)
+    assert node.counters.dropped == 2 and node.health.counts[condition] == 1

@@ -65,6 +65,9 @@ class FrameCounters:
 # frames up to this many pixels (the paper's single subaperture, small test pupils) are
 # centroided in batches when several are queued
 BATCH_PIXELS = 64 * 64
+#: an inline refit that holds the frame path longer than this (s) and is followed by missing
+#: frames is named as their likely cause, once (:meth:`CentroiderNode._note_inline_refit`)
+INLINE_REFIT_NOTE_S = 0.05
 
 
 class CentroiderNode(Node):
@@ -104,6 +107,7 @@ class CentroiderNode(Node):
         self._next_picture = 0.0
         self._last_line = ""
         self._notice = ""        # the centroider's notice last announced (Centroider.notice)
+        self._held_s = 0.0       # the longest inline refit on the frame path since a drop
         self.sensor = self._initial_sensor()
         self.layout = geometry.layout(self.sensor)
         self.centroider = None
@@ -363,6 +367,9 @@ class CentroiderNode(Node):
         fails on is counted and left out."""
         with self._lock:
             centroider, layout = self.centroider, self.layout
+            pupil = getattr(centroider, "pupil", None)
+            fits = pupil.fits if pupil is not None else None
+            started = time.monotonic()
             slopes = None
             if len(batch) > 1:
                 try:
@@ -380,6 +387,8 @@ class CentroiderNode(Node):
                         self._reject(f"{centroider.name} failed on a frame", repr(exc), health.ERROR)
                         continue
                 results.append((stamp_ns, geometry.slopes_to_grid(s, layout)))
+            if pupil is not None and pupil.fits != fits and not pupil.asynchronous:
+                self._held_s = max(self._held_s, time.monotonic() - started)
         self.counters.computed += len(results)
         return results
 
@@ -484,12 +493,27 @@ class CentroiderNode(Node):
                 return None
             if self._last_stamp is not None:
                 period_ns = 1e9 / self.sensor.frame_rate_hz
-                self.counters.dropped += max(0, int(round((stamp_ns - self._last_stamp) / period_ns)) - 1)
+                gap = max(0, int(round((stamp_ns - self._last_stamp) / period_ns)) - 1)
+                self.counters.dropped += gap
+                if gap and self._held_s > INLINE_REFIT_NOTE_S:
+                    self._note_inline_refit(gap)
             if self.centroider is None:
                 self._reject("no centroider", self.problem, health.OK)
                 return None
             self._last_stamp = stamp_ns
         return stamp_ns, image
+
+    def _note_inline_refit(self, gap: int) -> None:
+        """Frames went missing after an inline profile refit held the frame path: say why
+        once, with the cure, then count (the refit runs on the frame path by default so that
+        replay reproduces the node; a live node at the frame rate wants it in the background)."""
+        alg = self.get_parameter("algorithm").value
+        self.health.note("frames dropped after an inline profile refit",
+                         f"a refit of the pupil calibration held the frame path {self._held_s:.2f} s "
+                         f"and {gap} frame(s) after it were not received; set {alg}.pupil_async: "
+                         f"true to refit in the background (and {alg}.pupil_async_lag for a "
+                         f"replay that reproduces it)")
+        self._held_s = 0.0
 
     def _maybe_picture(self, stamp_ns: int, grid: np.ndarray):
         """Publish ``slopes_picture`` (rgb8) at ``picture_hz`` at most, if anyone listens."""
