@@ -720,3 +720,46 @@ def test_calibrations_of_the_same_optics_share_their_thin_layer_spots():
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ValueError, match="read-only"):
         a.basis[0, 0, 0] = 1.0
+
+
+def test_a_bag_recorded_with_unlagged_background_refits_replays_them_inline(tmp_path, monkeypatch,
+                                                                            capsys):
+    """cmf recorded with pupil_async and no lag (refits installed whenever ready: frames the
+    bag does not record) replays with its refits inline, says so, and gives the same slopes
+    at every replay; recorded with a lag it replays with that lag, in the background."""
+    from lgs_wfs_ros.analysis import bagdata
+    from lgs_wfs_ros.analysis.replay import INLINE
+    from lgs_wfs_ros import cli
+
+    path = tmp_path / "live.mcap"
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_period", 3)
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_async", True)
+    bagdata.make_sample_bag(path, frames=24, algorithms=("cmf",))
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_period", 140)
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_async", False)
+    runs = []
+    for k in range(2):
+        out = tmp_path / f"r{k}.mcap"
+        assert cli.main(["replay", str(path), "--algorithms", "cmf", "--out", str(out)]) == 0
+        seg = {sg.label: sg for sg in bagdata.load_bag(out).segments}["cmf_replay"]
+        assert seg.description["options"]["pupil_async"] is False
+        assert seg.description["options_source"] == INLINE
+        runs.append(seg.slopes.data)
+    assert "replayed with its refits inline" in capsys.readouterr().out
+    np.testing.assert_array_equal(runs[0], runs[1])
+    data = bagdata.load_bag(path, max_frames=None)
+    inline = table.build("cmf", data.sensor, {"pupil_period": 3})
+    frames = data.frames.data
+    lay = geometry.layout(data.sensor)
+    want = np.stack([inline.centroid(f) for f in frames])
+    np.testing.assert_allclose(runs[0][:, lay.valid.ravel()], want, atol=1e-5)
+    lagged = tmp_path / "lagged.mcap"
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_period", 3)
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_async", True)
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_async_lag", 2)
+    bagdata.make_sample_bag(lagged, frames=12, algorithms=("cmf",))
+    monkeypatch.setitem(pupil_cal.OPTION_DEFAULTS, "pupil_async_lag", 0)
+    from lgs_wfs_ros.analysis.replay import replay_bag
+    res = replay_bag(lagged, ["cmf"], out=tmp_path / "l.mcap", quiet=True)
+    assert res["options"]["cmf"]["source"] == "bag"
+    assert res["options"]["cmf"]["options"]["pupil_async"] is True

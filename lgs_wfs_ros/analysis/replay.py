@@ -79,12 +79,24 @@ def recorded_defaults(options: dict) -> dict:
     return options
 
 
+#: the options source of an algorithm recorded with background refits and no lag, replayed
+#: with its refits inline (:func:`_plan`)
+INLINE = "bag, refits inline"
+
+
 def _plan(algorithms, models, given, recorded):
-    """``[(label, algorithm, options, source)]``: one entry per algorithm (per model for ann)."""
+    """``[(label, algorithm, options, source)]``: one entry per algorithm (per model for ann).
+
+    An algorithm recorded with ``pupil_async`` and no ``pupil_async_lag`` installed each refit
+    whenever it was ready, at frames the bag does not record: replayed so, its slopes would
+    depend on this machine's speed and differ from run to run, so it is replayed with its
+    refits inline (source :data:`INLINE`), reproducible, as the benchmarks run."""
     plan = []
     for alg in algorithms:
         opts, source = (dict(given[alg]), "given") if alg in given else \
             (dict(recorded[alg]), "bag") if alg in recorded else ({}, "defaults")
+        if source == "bag" and opts.get("pupil_async") and not opts.get("pupil_async_lag"):
+            opts["pupil_async"], source = False, INLINE
         if alg == "ann" and models:
             for m in models:
                 label = "ann" if len(models) == 1 else "ann_" + "".join(
@@ -204,6 +216,13 @@ def replay_bag(path, algorithms=("cog", "cmf"), out=None, overwrite: bool = Fals
         w.close()
     result = {"out": str(out), **counts, "namespaces": spaces, "options": used}
     if not quiet:
+        for alg, u in used.items():
+            if u["source"] == INLINE:
+                hint = _json({u["algorithm"]: {"pupil_async": True, "pupil_async_lag": 140}})
+                print(f"{alg}: recorded with pupil_async and no pupil_async_lag (each refit "
+                      f"installed when ready, at frames the bag does not record): replayed with "
+                      f"its refits inline, reproducible but not the live slopes; --options "
+                      f"'{hint}' replays refits installed 140 frames after each period's end")
         what = ", ".join(f"{a} -> /{n} ({used[a]['source']} options)" for a, n in spaces.items())
         print(f"replayed {counts['frames']} frames of {src} with {what} into {out}"
               + (f" ({counts['skipped']} frames skipped: wrong size or undecodable)" if counts["skipped"] else ""))
