@@ -127,28 +127,38 @@ def test_the_second_pick_recovers_from_a_wrong_first_choice(detector):
 
 
 @pytest.mark.skipif(not fast_frames.AVAILABLE, reason="numba not installed ('fast' extra)")
-def test_the_grid_rendered_on_canvases_gives_the_filters_of_one_render_a_position(monkeypatch):
-    """On cartesian pixels a refit renders each sub-pixel phase of the grid once on a wider
-    canvas and crops the whole-pixel moves from it: the filters, their scales and sums are
-    the ones 25 x 5 renders give, bit for bit, on the default grid and on a 3 x 3 grid 1 px
-    apart (one phase); a crop a pixel off changes them."""
+def test_the_grid_rendered_on_canvases_gives_the_renders_of_each_position(monkeypatch):
+    """On cartesian pixels a refit renders each sub-pixel phase of the grid once, with its
+    derivatives, on a wider canvas and crops the whole-pixel moves from it: every position's
+    image is the one its own render gives, bit for bit, and its derivatives are the central
+    differences of renders 0.01 px either side to 1e-3 of their largest value, on the
+    default grid and on a 3 x 3 grid 1 px apart (one phase); a crop a pixel off, or the
+    derivatives along x and y swapped, are far from them."""
     sensor = small("cartesian")
+
+    def derivatives(images):
+        img, xm, xp, ym, yp, h = images
+        return img, (xp - xm) / (2 * h), (yp - ym) / (2 * h)
+
     for opts in ({}, {"grid": 3, "spacing_px": 1.0}):
         c = table.build("gmf", sensor, opts)
-        new = c._prepare(c.pupil)
+        new = {k: derivatives(v) for k, *v in c._position_images(c.pupil)}
+        old = {k: derivatives(v) for k, *v in c._position_images(c.pupil, canvas=False)}
+        assert sorted(new) == sorted(old) == list(range(c.positions.size ** 2))
+        for k in new:
+            np.testing.assert_array_equal(new[k][0], old[k][0])
+            for a in (1, 2):
+                top = np.abs(old[k][a]).max()
+                assert np.abs(new[k][a] - old[k][a]).max() < 1e-3 * top
+            assert np.abs(new[k][1] - old[k][2]).max() > 0.1 * top            # x is not y
+            assert np.abs(np.roll(new[k][0], 1, axis=2) - old[k][0]).max() > 0.1 * old[k][0].max()
+        built = c._prepare(c.pupil)
         with monkeypatch.context() as m:
             m.setattr(GMF, "_position_images", functools.partialmethod(GMF._position_images,
                                                                        canvas=False))
-            old = c._prepare(c.pupil)
-        for key in ("filters", "scale", "rsum", "ok"):
-            np.testing.assert_array_equal(new[key], old[key])
-    real = GMF._position_images
-
-    def off_by_one(self, calibration, canvas=True):
-        for k, *images in real(self, calibration, canvas):
-            yield k, *(np.roll(i, 1, axis=2) for i in images)
-    monkeypatch.setattr(GMF, "_position_images", off_by_one)
-    assert not np.array_equal(c._prepare(c.pupil)["filters"], old["filters"])
+            rendered = c._prepare(c.pupil)
+        np.testing.assert_array_equal(built["ok"], rendered["ok"])
+        np.testing.assert_allclose(built["scale"], rendered["scale"], rtol=5e-3)
 
 
 def test_options_are_checked():
@@ -208,14 +218,14 @@ def test_the_compiled_build_gives_the_numpy_filters(monkeypatch, detector):
     np.testing.assert_array_equal(new["ok"], old["ok"])
     assert new["ok"].all()
 
-    _, *img = next(iter(c._position_images(c.pupil)))
+    _, *img, h = next(iter(c._position_images(c.pupil)))
     img = np.array(img)                                                   # (5, n, p, p)
     img[:, 3] = 0.0                                                       # a dark block
-    f, s, rs, ok = kernels.position_filters(*img, 0.01, 3.5, 1.0)
+    f, s, rs, ok = kernels.position_filters(*img, h, 3.5, 1.0)
     assert not ok[3] and np.all(f[3] == 0) and np.all(rs[3] == 0) and ok[np.arange(c.n) != 3].all()
     # a plausibly wrong build: the derivative step off by 2 (gain 2), or no variance floor
-    assert not np.allclose(s, kernels.position_filters(*img, 0.02, 3.5, 1.0)[1], rtol=0.1)
-    assert not np.array_equal(f, kernels.position_filters(*img, 0.01, 0.0, 1e-9)[0])
+    assert not np.allclose(s, kernels.position_filters(*img, 2 * h, 3.5, 1.0)[1], rtol=0.1)
+    assert not np.array_equal(f, kernels.position_filters(*img, h, 0.0, 1e-9)[0])
 
 
 @pytest.mark.skipif(not (fast_frames.AVAILABLE and kernels.AVAILABLE),

@@ -25,14 +25,14 @@ Cost: per frame one compiled pass per block (the CoG's moments, then the chosen 
 two rows, and a second filter's where the second pick moves; :func:`.kernels.grid_filter`:
 one or two positions' rows, 1 kB a block each, the first asked for three blocks ahead) and
 the calibration's accumulation. At each refit every position's reference and its
-derivatives (central differences of renders through the simulator's compiled renderer):
-on cartesian pixels each sub-pixel phase of the grid rendered once on a wider canvas and
-the whole-pixel moves cropped from it (20 renders instead of 125), on polar pixels each
-spot's line and core alone (:meth:`GMF._position_lines`, no image); then each position's
-filters in one compiled pass (:func:`.kernels.position_filters`,
-:func:`.kernels.separable_filters`), 72 MB in int16 for the full pupil
-(:func:`.kernels.quantize`). A full-pupil refit takes ~0.9 s CPU cartesian, ~0.5 s polar
-(docs/accuracy.md). Refits can run in a background thread (``pupil_async``), as for every
+derivatives through the simulator's compiled renderer: on cartesian pixels each sub-pixel
+phase of the grid rendered once, with the renderer's own derivatives, on a wider canvas and
+the whole-pixel moves cropped from it (4 renders instead of 125 and their central
+differences), on polar pixels each spot's line and core alone (:meth:`GMF._position_lines`,
+no image, central differences); then each position's filters in one compiled pass
+(:func:`.kernels.position_filters`, :func:`.kernels.separable_filters`), 72 MB in int16
+for the full pupil (:func:`.kernels.quantize`). A full-pupil refit takes ~0.65 s CPU
+cartesian, ~0.5 s polar (docs/accuracy.md). Refits can run in a background thread (``pupil_async``), as for every
 pupil-calibrated estimator.
 """
 
@@ -126,9 +126,9 @@ class GMF(TabledCoG):
         scale = np.empty((g.size ** 2, n, 2))
         rsum = np.empty((g.size ** 2, n, 2))
         ok = np.ones(n, dtype=bool)
-        args = (DERIVATIVE_STEP, self.background + self.read_noise ** 2, self.var_floor)
+        args = (self.background + self.read_noise ** 2, self.var_floor)
         if self._separable():
-            built = ((k, kernels.separable_filters(lines, cores, counts, *args))
+            built = ((k, kernels.separable_filters(lines, cores, counts, DERIVATIVE_STEP, *args))
                      for k, lines, cores, counts in self._position_lines(calibration))
         else:
             build = kernels.position_filters if kernels.AVAILABLE else _numpy_filters
@@ -141,45 +141,46 @@ class GMF(TabledCoG):
                 "rsum": rsum, "ok": ok, "bias": calibration.cog_bias()}
 
     def _position_images(self, calibration, canvas: bool = True):
-        """Yield ``(k, img, xm, xp, ym, yp)`` for every grid position ``k`` (``ky G + kx``,
-        at ``(positions[kx], positions[ky])``): the calibration's spots there, counts ``(n,
-        p, p)``, and the same spots :data:`DERIVATIVE_STEP` px before and after it along
-        block x and y (their central differences are the derivatives; views of wider
-        canvases where those are rendered). On cartesian pixels with the compiled renderer each
-        distinct sub-pixel phase of the grid is rendered once, on a canvas wider than the
+        """Yield ``(k, img, xm, xp, ym, yp, h)`` for every grid position ``k`` (``ky G +
+        kx``, at ``(positions[kx], positions[ky])``): the calibration's spots there, counts
+        ``(n, p, p)``, and what gives their derivatives along block x and y as the central
+        differences ``(xp - xm) / 2h``, ``(yp - ym) / 2h``: the same spots
+        :data:`DERIVATIVE_STEP` px (``h``) before and after the position, rendered, or, on
+        cartesian pixels with the compiled renderer, the renderer's own derivatives as ``xp``
+        and ``yp`` with zeros for ``xm``, ``ym`` and ``h`` = 0.5. There each distinct sub-pixel
+        phase of the grid is rendered once with its derivatives, on a canvas wider than the
         block, and the positions whole pixels from it are crops of that canvas
-        (:meth:`..optics.fast_frames.FastRenderer.canvas`: the default 5 x 5 grid, 0.5 px
-        apart, in 4 x 5 renders instead of 25 x 5; the same filters bit for bit, tested);
-        otherwise, or with ``canvas`` false, each position is rendered."""
+        (:meth:`..optics.fast_frames.FastRenderer.canvas_derivatives`: the default 5 x 5 grid,
+        0.5 px apart, in 4 renders instead of 125; the images bit for bit, the derivatives
+        within 1e-3 of their largest value of the central differences', tested); otherwise,
+        or with ``canvas`` false, each position and its four moves are rendered."""
         g, h, n, side = self.positions, DERIVATIVE_STEP, self.n, self.positions.size
         if not (canvas and fast_frames.AVAILABLE and self.sensor.detector == "cartesian"):
             image_at = self._renders(calibration)
             for ky, kx in np.ndindex(side, side):
                 d = np.tile([g[kx], g[ky]], (n, 1))
                 yield (ky * side + kx, image_at(d), image_at(d - [h, 0.0]),
-                       image_at(d + [h, 0.0]), image_at(d - [0.0, h]), image_at(d + [0.0, h]))
+                       image_at(d + [h, 0.0]), image_at(d - [0.0, h]), image_at(d + [0.0, h]), h)
             return
         renderer, model, scale = self._fast(calibration)
         whole = np.floor(g + 1e-9).astype(int)              # a position = whole px + phase
         phase = np.round(g - whole, 9)
         m, p = int(np.abs(whole).max()), self.p
-
-        def at(fx, fy):
-            # counts of the spots at (fx, fy) px on the canvas, through float32 as the frame
-            # path writes them
-            c = renderer.canvas(model, np.tile([fx, fy], (n, 1)), m)
-            return c.astype(np.float32) * scale        # float64: the float32 values, exactly
-
+        zero = np.zeros((n, p, p))
         for fy in np.unique(phase):
             for fx in np.unique(phase):
-                c0, cx0, cx1 = at(fx, fy), at(fx - h, fy), at(fx + h, fy)
-                cy0, cy1 = at(fx, fy - h), at(fx, fy + h)
+                # counts of the spots at (fx, fy) px on the canvas, through float32 as the
+                # frame path writes them (float64: the float32 values, exactly), and their
+                # derivatives
+                c0, dx, dy = renderer.canvas_derivatives(model, np.tile([fx, fy], (n, 1)), m)
+                c0 = c0.astype(np.float32) * scale
+                dx, dy = dx * scale, dy * scale
                 for ky in np.flatnonzero(phase == fy):
                     for kx in np.flatnonzero(phase == fx):
                         rows = slice(m - whole[ky], m - whole[ky] + p)     # moved by whole px
                         cols = slice(m - whole[kx], m - whole[kx] + p)
-                        yield (ky * side + kx, c0[:, rows, cols], cx0[:, rows, cols],
-                               cx1[:, rows, cols], cy0[:, rows, cols], cy1[:, rows, cols])
+                        yield (ky * side + kx, c0[:, rows, cols], zero, dx[:, rows, cols], zero,
+                               dy[:, rows, cols], 0.5)
 
     def _separable(self) -> bool:
         """Whether a refit builds the filters from 1-D lines (:meth:`_position_lines`): a
