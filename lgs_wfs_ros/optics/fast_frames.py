@@ -313,41 +313,64 @@ def _expose_blocks(images, p, rows, cols, b0, b1, photons, per_field, noise, int
     return sat
 
 
+def _block_nodes(w, a0, b, inv_m, nk, tab, dtab, z0, inv_h, reach, s_maj, s_min, p, i,
+                 pmaj, dmaj, acc, amaj, amin, deriv):
+    """Block ``i``'s nodes into ``acc (p, p)`` (minor, major): each node's core,
+    pixel-integrated along both detector axes (the fine table of
+    :func:`spots._pixel_core_table`), added over the pixels within ``reach`` of it; with
+    ``deriv`` also into ``amaj`` and ``amin`` their derivatives with respect to a shift along
+    the major and the minor axis (one of the two table reads taken as its slope). ``pmaj``,
+    ``dmaj`` ``(p,)`` scratch."""
+    c = (p - 1) / 2.0
+    last = tab.size - 2
+    acc[:, :] = 0.0
+    if deriv:
+        amaj[:, :] = 0.0
+        amin[:, :] = 0.0
+    for k in range(nk[i]):
+        wk = w[i, k]
+        if wk == 0.0:
+            continue
+        xm = c + a0[i] + k * inv_m[i] + s_maj[i]
+        ym = c + b[i, k] + s_min[i]
+        j0 = max(0, math.ceil(xm - reach))
+        j1 = min(p - 1, math.floor(xm + reach))
+        i0 = max(0, math.ceil(ym - reach))
+        i1 = min(p - 1, math.floor(ym + reach))
+        if j0 > j1 or i0 > i1:
+            continue
+        for j in range(j0, j1 + 1):
+            y = (j - xm - z0) * inv_h
+            g = min(max(int(math.floor(y)), 0), last)
+            pmaj[j] = tab[g] + (y - g) * dtab[g]
+            if deriv:
+                dmaj[j] = -inv_h * dtab[g]
+        for a in range(i0, i1 + 1):
+            y = (a - ym - z0) * inv_h
+            g = min(max(int(math.floor(y)), 0), last)
+            ga = wk * (tab[g] + (y - g) * dtab[g])
+            if deriv:
+                gd = wk * (-inv_h * dtab[g])
+                for j in range(j0, j1 + 1):
+                    acc[a, j] += ga * pmaj[j]
+                    amaj[a, j] += ga * dmaj[j]
+                    amin[a, j] += gd * pmaj[j]
+            else:
+                for j in range(j0, j1 + 1):
+                    acc[a, j] += ga * pmaj[j]
+
+
 def _render_cartesian(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reach, s_maj,
                       s_min, p, b0, b1, images, trunc):
     """Compiled: for the subapertures ``b0 <= i < b1``, each node's core, pixel-integrated
-    along both detector axes (the fine table of :func:`spots._pixel_core_table`), added
-    over the pixels within ``reach`` of it: ``images[i, minor, major]`` (transposed when
-    the major axis is y), and the truncation ``trunc[i] = 1 - sum``."""
-    c = (p - 1) / 2.0
-    last = tab.size - 2
+    along both detector axes (:func:`_block_nodes`): ``images[i, minor, major]``
+    (transposed when the major axis is y), and the truncation ``trunc[i] = 1 - sum``."""
     pmaj = np.empty(p)
     acc = np.empty((p, p))                                  # (minor, major)
     for i in range(b0, b1):
         img = images[i]
-        acc[:, :] = 0.0
-        for k in range(nk[i]):
-            wk = w[i, k]
-            if wk == 0.0:
-                continue
-            xm = c + a0[i] + k * inv_m[i] + s_maj[i]
-            ym = c + b[i, k] + s_min[i]
-            j0 = max(0, math.ceil(xm - reach))
-            j1 = min(p - 1, math.floor(xm + reach))
-            i0 = max(0, math.ceil(ym - reach))
-            i1 = min(p - 1, math.floor(ym + reach))
-            if j0 > j1 or i0 > i1:
-                continue
-            for j in range(j0, j1 + 1):
-                y = (j - xm - z0) * inv_h
-                g = min(max(int(math.floor(y)), 0), last)
-                pmaj[j] = tab[g] + (y - g) * dtab[g]
-            for a in range(i0, i1 + 1):
-                y = (a - ym - z0) * inv_h
-                g = min(max(int(math.floor(y)), 0), last)
-                ga = wk * (tab[g] + (y - g) * dtab[g])
-                for j in range(j0, j1 + 1):
-                    acc[a, j] += ga * pmaj[j]
+        _block_nodes(w, a0, b, inv_m, nk, tab, dtab, z0, inv_h, reach, s_maj, s_min, p, i,
+                     pmaj, pmaj, acc, acc, acc, False)
         tot = 0.0
         for a in range(p):
             for j in range(p):
@@ -364,46 +387,16 @@ def _render_cartesian_d(w, a0, b, inv_m, major_y, nk, tab, dtab, z0, inv_h, reac
                         s_min, p, images, dx, dy):
     """Compiled: :func:`_render_cartesian`'s noise-free ``images (n, q, q)`` of every
     subaperture and their derivatives with respect to a shift along detector x and y,
-    ``dx``, ``dy`` (the slope of the same interpolated core table: each node's pixel light
-    is a product of two table reads, so each derivative is one of them read as its slope);
-    zero where the image is clipped at zero."""
-    c = (p - 1) / 2.0
-    last = tab.size - 2
+    ``dx``, ``dy`` (:func:`_block_nodes` with ``deriv``); zero where the image is clipped
+    at zero."""
     pmaj = np.empty(p)
     dmaj = np.empty(p)
     acc = np.empty((p, p))                                  # (minor, major)
     amaj = np.empty((p, p))                                 # d/d(major shift)
     amin = np.empty((p, p))                                 # d/d(minor shift)
     for i in range(images.shape[0]):
-        acc[:, :] = 0.0
-        amaj[:, :] = 0.0
-        amin[:, :] = 0.0
-        for k in range(nk[i]):
-            wk = w[i, k]
-            if wk == 0.0:
-                continue
-            xm = c + a0[i] + k * inv_m[i] + s_maj[i]
-            ym = c + b[i, k] + s_min[i]
-            j0 = max(0, math.ceil(xm - reach))
-            j1 = min(p - 1, math.floor(xm + reach))
-            i0 = max(0, math.ceil(ym - reach))
-            i1 = min(p - 1, math.floor(ym + reach))
-            if j0 > j1 or i0 > i1:
-                continue
-            for j in range(j0, j1 + 1):
-                y = (j - xm - z0) * inv_h
-                g = min(max(int(math.floor(y)), 0), last)
-                pmaj[j] = tab[g] + (y - g) * dtab[g]
-                dmaj[j] = -inv_h * dtab[g]
-            for a in range(i0, i1 + 1):
-                y = (a - ym - z0) * inv_h
-                g = min(max(int(math.floor(y)), 0), last)
-                ga = wk * (tab[g] + (y - g) * dtab[g])
-                gd = wk * (-inv_h * dtab[g])
-                for j in range(j0, j1 + 1):
-                    acc[a, j] += ga * pmaj[j]
-                    amaj[a, j] += ga * dmaj[j]
-                    amin[a, j] += gd * pmaj[j]
+        _block_nodes(w, a0, b, inv_m, nk, tab, dtab, z0, inv_h, reach, s_maj, s_min, p, i,
+                     pmaj, dmaj, acc, amaj, amin, True)
         for a in range(p):
             for j in range(p):
                 lit = acc[a, j] > 0.0
@@ -436,6 +429,7 @@ if AVAILABLE:
     _render_polar = _jit(_render_polar)
     _polar_lines = _jit(_polar_lines)
     _expose_blocks = _jit(_expose_blocks)
+    _block_nodes = numba.njit(cache=True, nogil=True, inline="always")(_block_nodes)
     _render_cartesian = _jit(_render_cartesian)
     _render_cartesian_d = _jit(_render_cartesian_d)
 
@@ -675,11 +669,7 @@ class FastRenderer:
         block's image of a spot moved by whole pixels ``(dx, dy)`` (``|d| <= margin``) is the
         crop ``[margin - dy : margin - dy + p, margin - dx : margin - dx + p]``: a grid of
         positions 0.5 px apart needs 4 renders instead of one each."""
-        if model.polar:
-            raise ValueError("canvas: cartesian models only")
-        if not (isinstance(margin, (int, np.integer)) and margin >= 0):
-            raise ValueError(f"canvas: margin must be an integer >= 0, got {margin!r}")
-        n, q = self.rows.size, self.sensor.pixels + 2 * int(margin)
+        n, q = self._canvas_side(model, margin, "canvas")
         images = np.empty((n, q, q))
         self._cartesian(model, self.table(model), truth, images, np.empty(n), 0, n)
         return images
@@ -691,33 +681,36 @@ class FastRenderer:
         shift along detector x and y, px^-1, in one pass (the derivative of the renderer's
         interpolated core, where central differences of two more renders each would
         approximate it: a grid of positions' filters from 4 renders instead of 20)."""
-        if model.polar:
-            raise ValueError("canvas_derivatives: cartesian models only")
-        if not (isinstance(margin, (int, np.integer)) and margin >= 0):
-            raise ValueError(f"canvas_derivatives: margin must be an integer >= 0, got {margin!r}")
-        n, q = self.rows.size, self.sensor.pixels + 2 * int(margin)
+        n, q = self._canvas_side(model, margin, "canvas_derivatives")
         out = tuple(np.empty((n, q, q)) for _ in range(3))
-        t = self.table(model)
+        _render_cartesian_d(*self._cartesian_args(model, self.table(model), truth), q, *out)
+        return out
+
+    def _canvas_side(self, model: SpotModel, margin, what: str) -> tuple[int, int]:
+        """``(n, q)``: the blocks and the side of a canvas ``margin`` px wider than the block
+        on every side, once the model and the margin are checked."""
+        if model.polar:
+            raise ValueError(f"{what}: cartesian models only")
+        if not (isinstance(margin, (int, np.integer)) and margin >= 0):
+            raise ValueError(f"{what}: margin must be an integer >= 0, got {margin!r}")
+        return self.rows.size, self.sensor.pixels + 2 * int(margin)
+
+    @staticmethod
+    def _cartesian_args(model, t, truth) -> tuple:
+        """The compiled cartesian renderers' arguments before the image side: the table
+        ``t``, the core table and its reach, and ``truth (n, 2)`` as major and minor shifts."""
         truth = np.asarray(truth, dtype=float)
         s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
         s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
         tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
-        _render_cartesian_d(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
-                            float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, q,
-                            *out)
-        return out
+        return (t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0), float(inv_h),
+                0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min)
 
     def _cartesian(self, model, t, truth, images, trunc, b0, b1):
         """Noise-free ``images[b0:b1] (q, q)`` and ``trunc[b0:b1]`` of a cartesian model, on
         images of any side ``q`` (the block's, or a :meth:`canvas`), centred alike."""
-        p = images.shape[-1]
-        truth = np.asarray(truth, dtype=float)
-        s_maj = np.where(t.major_y, truth[:, 1], truth[:, 0])
-        s_min = np.where(t.major_y, truth[:, 0], truth[:, 1])
-        tab, dtab, z0, inv_h = _pixel_core_table(model.sigma_px)
-        _render_cartesian(t.w, t.a0, t.b, t.inv_m, t.major_y, t.nk, tab, dtab, float(z0),
-                          float(inv_h), 0.5 + CORE_SIGMAS * model.sigma_px, s_maj, s_min, p,
-                          b0, b1, images, trunc)
+        _render_cartesian(*self._cartesian_args(model, t, truth), images.shape[-1], b0, b1,
+                          images, trunc)
 
 
 __all__ = ["FastRenderer", "PolarTable", "core_kernels", "H", "AVAILABLE"]
