@@ -32,8 +32,8 @@ differences), on polar pixels each spot's line and core alone (:meth:`GMF._posit
 no image, central differences); then each position's filters in one compiled pass
 (:func:`.kernels.position_filters`, :func:`.kernels.separable_filters`), 72 MB in int16
 for the full pupil (:func:`.kernels.quantize`). A full-pupil refit takes ~0.65 s CPU
-cartesian, ~0.5 s polar (docs/accuracy.md). Refits can run in a background thread (``pupil_async``), as for every
-pupil-calibrated estimator.
+cartesian, ~0.5 s polar (docs/accuracy.md). Refits can run in a background thread
+(``pupil_async``), as for every pupil-calibrated estimator.
 """
 
 from __future__ import annotations
