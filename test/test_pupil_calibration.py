@@ -763,3 +763,26 @@ def test_a_bag_recorded_with_unlagged_background_refits_replays_them_inline(tmp_
     res = replay_bag(lagged, ["cmf"], out=tmp_path / "l.mcap", quiet=True)
     assert res["options"]["cmf"]["source"] == "bag"
     assert res["options"]["cmf"]["options"]["pupil_async"] is True
+
+
+@pytest.mark.skipif(not pupil_cal.kernels.AVAILABLE, reason="numba not installed ('fast' extra)")
+def test_the_thin_layer_basis_from_the_compiled_renderer_is_the_exact_one(monkeypatch):
+    """On a cartesian detector the calibration's thin-layer basis and its derivative come
+    from the simulator's compiled renderer (FastRenderer.canvas) instead of exact renders:
+    the same projected hats within 1e-6 of a hat's light (the derivative, a difference over
+    0.02 px, within 1e-4); hats rendered one block off in the layout are far from them."""
+    from lgs_wfs_ros.optics.model_spot import altitude_nodes, projected_hats
+    sensor = SMALL.replace(core_fwhm_px=1.5)
+    lay = geometry.layout(sensor)
+    nodes = altitude_nodes(sensor, count=24)
+    proj = Projection(sensor, lay.e)
+    e_pix = np.asarray(lay.e)
+    for shift in (None, 0.02 * e_pix):
+        exact = projected_hats(sensor, lay.r_m, lay.e, nodes, proj, shift)
+        fast = projected_hats(sensor, lay.r_m, lay.e, nodes, proj, shift, lay)
+        assert exact.max() > 0.1
+        np.testing.assert_allclose(fast, exact, atol=1e-6)
+    db = (fast - projected_hats(sensor, lay.r_m, lay.e, nodes, proj, None, lay)) / 0.02
+    db_exact = (exact - projected_hats(sensor, lay.r_m, lay.e, nodes, proj)) / 0.02
+    np.testing.assert_allclose(db, db_exact, atol=1e-4)
+    assert np.abs(np.roll(fast, 1, axis=0) - exact).max() > 0.05

@@ -179,7 +179,7 @@ class PupilCalibration:
 
     @property
     def basis(self) -> np.ndarray:
-        """``(n, nb, K)`` projected thin-layer spots (built on first use, 2-5 s polar, ~18 s
+        """``(n, nb, K)`` projected thin-layer spots (built on first use, 2-5 s polar, ~5 s
         cartesian, then shared: :func:`shared_hats`), and with them ``_dbasis``, their
         derivative with respect to a shift along e (px^-1, a forward difference over 0.02
         px: one more render)."""
@@ -199,7 +199,7 @@ class PupilCalibration:
         """``(basis, dbasis, colsum, dcolsum, gram)`` of :attr:`basis` for ``sensor`` (the
         calibration's, its core widened by the tilt blur), built."""
         hats = lambda shift: projected_hats(sensor, self.layout.r_m, self.layout.e,  # noqa: E731
-                                            self.nodes_m, self.projection, shift)
+                                            self.nodes_m, self.projection, shift, self.layout)
         b, h = hats(None), 0.02
         db = (hats(h * self._e_pix) - b) / h
         flat = b.reshape(-1, b.shape[2])
