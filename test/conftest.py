@@ -44,15 +44,18 @@ class RosHarness:
         self._thread.start()
 
     def _spin(self):
+        from rclpy._rclpy_pybind11 import InvalidHandle
         from rclpy.executors import ExternalShutdownException
         try:
             self.executor.spin()
         except ExternalShutdownException:
             pass
-        except AttributeError:
-            # rclpy's Executor.shutdown() drops its guard condition (``_guard = None``) while
-            # this thread may be re-entering its wait: ``gc.handle`` of None, seen under load
-            # (CI 2026-11-28). A race inside rclpy at shutdown only; at any other time, raise.
+        except (AttributeError, InvalidHandle):
+            # rclpy's Executor.shutdown() drops its guard condition (``_guard = None``) or
+            # destroys it while this thread may be re-entering its wait: ``gc.handle`` of
+            # None (CI 2026-11-28), or "cannot use Destroyable because destruction was
+            # requested" from the guard's trigger (CI 2026-11-29), both under load. A race
+            # inside rclpy at shutdown only; at any other time, raise.
             if not self._stopping:
                 raise
 
