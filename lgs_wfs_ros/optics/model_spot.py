@@ -19,6 +19,7 @@ import numpy as np
 from scipy import sparse
 
 from ..sensor import Sensor
+from . import fast_frames
 from .geometry import local_to_detector
 from .spots import SpotModel
 
@@ -98,7 +99,6 @@ def projected_hats(sensor: Sensor, r_m, e, nodes_m, projection: Projection,
     spots come from the simulator's compiled renderer
     (:meth:`.fast_frames.FastRenderer.canvas`: within 1e-7 of the light of the exact
     renders, in a fifth of their time) where numba is installed."""
-    from . import fast_frames
     ext = np.concatenate([[2 * nodes_m[0] - nodes_m[1]], nodes_m, [2 * nodes_m[-1] - nodes_m[-2]]])
     n = np.asarray(r_m).size
     out = np.empty((n, projection.nb, len(nodes_m)))

@@ -43,6 +43,28 @@ SCORED = 280
 FULL_OUTER_SCALE_M = 30.0
 
 
+def centroider_params(case: str, name: str) -> dict:
+    """The parameters of centroider ``name`` in a demo run.
+
+    The full pupil runs every centroider at its defaults, its refits off the frame path as a
+    live node at the frame rate wants them (README: the first builds the calibration's
+    basis, seconds that would hold the node and lose frames inline). The paper's single
+    subaperture runs the paper's MLP and a CMF a real system can run at full rate: a
+    reference from the spot model, model noise weighting, no response inversion (linearize
+    costs ~1 ms a frame more: docs/accuracy.md); the paper's idealised "history" reference
+    follows the moving spot and so reports ~0 under turbulence (docs/reproduction.md)."""
+    params = {"algorithm": name}
+    if case != "single":
+        if any(o.name == "pupil_async" for o in options.OPTIONS.get(name, ())):
+            params[f"{name}.pupil_async"] = True
+    elif name == "ann":
+        params["ann.model"] = "ann_1k"
+    elif name == "cmf":
+        params.update({"cmf.reference": "model", "cmf.weighting": "model",
+                       "cmf.linearize": False})
+    return params
+
+
 def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, seed: int = 1,
                 frame_every: int = 1, sim_params: dict | None = None) -> list[NodeSpec]:
     """The node processes of one demo run."""
@@ -64,22 +86,7 @@ def graph_specs(case: str, bag: Path, frames: int, rate_hz: float, algorithms, s
         # closes as soon as every centroider has answered every frame; 15 s for a slow start
         "frames": frames, "frame_every": frame_every, "linger_s": 15.0})]
     for name in algorithms:
-        params = {"algorithm": name}
-        if case != "single":
-            # the full pupil: every centroider at its defaults, refits off the frame path as
-            # a live node at the frame rate wants them (README): the first builds the
-            # calibration's basis, seconds that would hold the node and lose frames inline
-            if any(o.name == "pupil_async" for o in options.OPTIONS.get(name, ())):
-                params[f"{name}.pupil_async"] = True
-        elif name == "ann":
-            params["ann.model"] = "ann_1k"
-        elif name == "cmf":
-            # What a real system can run at full rate: a reference from the spot model,
-            # model noise weighting, no response inversion (linearize costs ~1 ms a frame
-            # more: docs/accuracy.md). The paper's idealised "history" reference follows the
-            # moving spot and so reports ~0 under turbulence (docs/reproduction.md).
-            params.update({"cmf.reference": "model", "cmf.weighting": "model",
-                           "cmf.linearize": False})
+        params = centroider_params(case, name)
         specs.append(NodeSpec("centroider_node", name, params,
                               {"frame": "/wfs/frame", "sensor": "/wfs/sensor",
                                "true_slopes": "/wfs/true_slopes"}))
