@@ -596,6 +596,27 @@ def test_background_refit_gives_the_calibrated_cog_the_inline_bias():
     live.pupil.wait()
 
 
+@pytest.mark.parametrize("alg, opts", [("corr", {}), ("cog", {"bias": "pupil"})])
+def test_background_refit_renders_only_the_image_the_estimator_reads(monkeypatch, alg, opts):
+    """corr and the calibrated cog read the reference's image alone: a background refit
+    renders no derivative (four renders of the full pupil each) and installs what the
+    inline mode gives."""
+    from lgs_wfs_ros.optics.model_spot import ProfileSpots
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    frames = [sm.images(np.zeros((n, 2)))[0] * 1000.0 for _ in range(3)]
+
+    def no_derivatives(*args, **kwargs):
+        raise AssertionError("the refit rendered the reference's derivatives")
+    monkeypatch.setattr(ProfileSpots, "reference", no_derivatives)
+    inline, live, want = _refitted_in_the_background(alg, s, opts, frames)
+    got = live.centroid(frames[2])                   # installs (re-raises a refit's error)
+    assert live.pupil.fits == 1
+    np.testing.assert_array_equal(got, want[2])
+    live.pupil.wait()
+
+
 def test_background_refit_makes_the_networks_references_in_its_thread():
     """ann with pupil_async: the network's part of a refit (its filters from the new
     references, its reading of them, the straightened response) is made in the refit's

@@ -340,7 +340,8 @@ class PupilCalibration:
         if self.prepare is not None:                         # it renders what it needs
             payload = self.prepare(clone)
         else:
-            clone.reference()                                # rendered here, not on a frame
+            clone.reference_image()      # here, not on a frame; the image alone: cog and corr
+                                         # read no derivative (four renders fewer)
         if self.prepare is None or self.altitude_s > 0:      # the CoG bias, the tracker's
             clone.cog_bias()
         if self.want_response:                               # a linearised CoG's
