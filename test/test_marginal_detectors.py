@@ -72,6 +72,31 @@ def test_polar_pairs_are_the_column_sums_as_before():
         refdata.marginal_pairs(np.random.default_rng(5), 2, detector="hexagonal")
 
 
+def test_reference_blur_widens_the_reference_alone_by_its_drawn_rms():
+    """``PriorSpec.reference_blur_px``: the same spots, shifts and photons; each reference
+    blurred along e by a normal of the rms drawn from the stream spawned off the batch's
+    seed: the column sums of an untruncated reference gain that rms squared in variance."""
+    import dataclasses
+    n, top = 64, 0.3
+    spec = dataclasses.replace(refdata.MARGINAL_SPEC, reference_blur_px=top)
+    plain = refdata.marginal_pairs(np.random.default_rng(5), n)
+    blurred = refdata.marginal_pairs(np.random.default_rng(5), n, spec=spec)
+    for f in ("marg", "y", "photons", "r_m"):
+        np.testing.assert_array_equal(getattr(blurred, f), getattr(plain, f))
+    seq = np.random.default_rng(5).bit_generator.seed_seq.spawn(1)[0]
+    rms = np.random.default_rng(seq).uniform(0.0, top, size=n)
+
+    def variance(a):
+        k = np.arange(a.shape[1])
+        m = (a * k).sum(axis=1) / a.sum(axis=1)
+        return (a * (k - m[:, None]) ** 2).sum(axis=1) / a.sum(axis=1)
+    inside = plain.r_m < 4.0                       # short spots: the field cuts nothing
+    assert inside.sum() >= 4
+    added = variance(blurred.refs.astype(float)) - variance(plain.refs.astype(float))
+    np.testing.assert_allclose(added[inside], rms[inside] ** 2, atol=4e-3)
+    assert rms[inside].max() > 0.15                 # the test sees real blurs
+
+
 def test_split_and_streams():
     """Detectors share the spots as often as they are listed; polar batches are the draws
     of a polar-only run, cartesian ones their own stream."""

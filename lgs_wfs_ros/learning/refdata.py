@@ -53,6 +53,7 @@ class PriorSpec:
     stale_shift_m: float = 150.0
     stale_stretch: float = 0.05
     node_noise: float = 0.05
+    reference_blur_px: float = 0.0
 
     def describe(self) -> str:
         return (f"broad prior from measured profiles 0-65 (the training split): centroid "
@@ -170,12 +171,32 @@ def _spots(rng, spec: PriorSpec, sensor: Sensor, r: np.ndarray, e: np.ndarray,
     rho = broad_profiles(rng, n, spec)
     img, _ = SpotModel(render, r, e, GRID, rho, max_shift_px=2.4).images(t)
     ref_rho = calibrated(rng, rho, spec, sensor)
-    ref, _ = SpotModel(render, r, e, GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))
+    ref = _reference(rng, spec, render, r, e, ref_rho)
     ph = np.exp(rng.uniform(*np.log(spec.photons), size=n))
     counts = expose(np.clip(img, 0.0, None), ph, rng, sensor.read_noise_e, sensor.background_e,
                     True, "float32")
     out = (t, np.clip(ref, 0.0, None), ph, counts)
     return (*out, ref_rho) if profiles else out
+
+
+#: Gauss-Hermite rule of three points for a normal blur: nodes in units of its rms, weights
+BLUR_NODES, BLUR_WEIGHTS = np.array([0.0, math.sqrt(3.0), -math.sqrt(3.0)]), (2 / 3, 1 / 6, 1 / 6)
+
+
+def _reference(rng, spec: PriorSpec, render: Sensor, r: np.ndarray, e: np.ndarray,
+               ref_rho: np.ndarray) -> np.ndarray:
+    """``(n, p, p)`` noise-free references at zero shift of densities ``ref_rho (n, K)``;
+    with ``spec.reference_blur_px`` each also blurred along e by a normal of rms uniform in
+    0 to that many px (the wider spot a calibration leaves when it takes the tilts' blur for
+    less than it is, docs/ann_ref.md), by three renders (:data:`BLUR_NODES`). Those rms
+    come from a stream spawned off ``rng``'s seed, so every other draw stays as without."""
+    n = r.size
+    if spec.reference_blur_px <= 0:
+        return SpotModel(render, r, e, GRID, ref_rho, max_shift_px=0.0).images(np.zeros((n, 2)))[0]
+    side = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
+    rms = side.uniform(0.0, spec.reference_blur_px, size=n)
+    model = SpotModel(render, r, e, GRID, ref_rho, max_shift_px=float(BLUR_NODES.max() * rms.max()))
+    return sum(w * model.images((rms * a)[:, None] * e)[0] for a, w in zip(BLUR_NODES, BLUR_WEIGHTS))
 
 
 @dataclass
