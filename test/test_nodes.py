@@ -239,12 +239,15 @@ def test_recorder_sizes_its_frame_queue_for_the_sensor(ros, tmp_path):
     assert wait_for(lambda: "/wfs" in rec.sensors, timeout=10)
     # the subscription is re-created just after the description is stored
     assert wait_for(lambda: rec._subs["/wfs/frame"].qos_profile.depth == 2000, timeout=10)
-    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 1, timeout=10)
-    time.sleep(0.5)
+    # both the old queue (100) and the new one (2000) matched: frames sent while only the old
+    # one is matched are at its depth's mercy (ci94 lost 21 of a burst that began so), which
+    # is what the recorder had before it knew the sensor, not what this test is about
+    assert wait_for(lambda: rig.frame_pub.get_subscription_count() >= 2, timeout=10)
     frame = small_frame(fast, 1)
     for k in range(500):
         rig.send(frame, 1000 + k)
-    assert wait_for(lambda: rec.done, timeout=30), (rec.frames_seen, rec.recorded, rec.gaps, rec._overlap, rec._old_subs, rec._sequence)
+    assert wait_for(lambda: rec.done, timeout=30), (rec.frames_seen, rec.recorded, rec.gaps)
+    assert not any(rec.gaps.values()), rec.gaps
     stamps, _ = bags.BagReader(out).images("/wfs/frame")
     assert list(stamps) == [1000 + k for k in range(500)]
 
