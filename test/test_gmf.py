@@ -188,6 +188,39 @@ def test_a_refit_rebuilds_the_filters_for_the_next_frame():
     assert gmf._filters is not before and not np.array_equal(gmf._filters, before)
 
 
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_refits_take_turns_with_two_tables_and_fill_them_whole(detector):
+    """A refit fills the tables the refit before last filled (no 72 MB allocated and
+    faulted in each time), never those the frames read, and every entry of them: the
+    filters installed are those of tables built new for the same calibration."""
+    sensor = small(detector)
+    gmf = table.build("gmf", sensor, {"pupil_period": 3})
+    rng = np.random.default_rng(6)
+    installed, contents = [gmf._filters], [gmf._filters.copy()]
+    for k in range(3):              # spots moved each period: each refit's filters differ
+        counts = rng.poisson(counts_at(gmf, np.full((gmf.n, 2), 0.4 * k), 1000.0))
+        for _ in range(3):
+            gmf.centroid(counts.astype(np.float32))
+        assert gmf._version == gmf.pupil.version
+        assert gmf._spare is not None and gmf._spare[0] is not gmf._filters
+        installed.append(gmf._filters)
+        contents.append(gmf._filters.copy())
+    assert installed[2] is installed[0] and installed[3] is installed[1]
+    assert installed[1] is not installed[0]
+    assert not np.array_equal(contents[3], contents[1])
+    gmf._spare = None                                             # a new table for the same fit
+    fresh = gmf._prepare(gmf.pupil)
+    assert fresh["filters"] is not gmf._filters
+    np.testing.assert_array_equal(fresh["filters"], gmf._filters)
+    np.testing.assert_array_equal(fresh["scale"], gmf._scale)
+    np.testing.assert_array_equal(fresh["rsum"], gmf._rsum)
+    np.testing.assert_array_equal(fresh["ok"], gmf._ok)
+    wrong = (np.empty((2, 2, 16), dtype=np.float32), np.empty((2, 2)), np.empty((2, 2)),
+             np.empty(2, dtype=bool))                            # float filters: refused
+    with pytest.raises(ValueError, match="out must be"):
+        kernels.position_filters(*np.ones((5, 2, 4, 4)), 0.01, 1.0, 1.0, out=wrong)
+
+
 def test_quantized_rows_are_the_filters_to_half_a_step():
     from lgs_wfs_ros.centroiding.kernels import quantize
     r = np.random.default_rng(8).normal(0.0, 1e-3, (3, 5, 2, 256))

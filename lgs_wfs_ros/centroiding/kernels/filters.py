@@ -350,7 +350,7 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
 
 
 def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.ndarray,
-                     yp: np.ndarray, h: float, var_add: float, floor: float
+                     yp: np.ndarray, h: float, var_add: float, floor: float, out: tuple = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The grid's filters of one reference position (:class:`.gmf.GMF`), one compiled pass
     over the blocks (a refit's filters without numpy's ``(n, p*p, 3)`` temporaries).
@@ -363,19 +363,17 @@ def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.nda
     quantized as :func:`.blocks.quantize` does. Returns ``(filters (n, 2, p*p)`` int16,
     ``scale (n, 2)``, ``rsum (n, 2)`` the sums of ``scale * filters``, ``ok (n,)``: True
     where ``R A = M`` holds to 1e-6; a block without light or with a singular system gets
-    zero rows and False)."""
+    zero rows and False). ``out``, if given, is that tuple of arrays (C-contiguous; e.g.
+    one position's slices of a refit's table), filled and returned."""
     n, p = img.shape[0], img.shape[1]
-    filters = np.empty((n, 2, p * p), dtype=np.int16)
-    scale = np.empty((n, 2))
-    rsum = np.empty((n, 2))
-    ok = np.empty(n, dtype=np.bool_)
+    filters, scale, rsum, ok = _outputs(n, p, out)
     _position_filters(img, xm, xp, ym, yp, float(h), float(var_add), float(floor),
                       filters, scale, rsum, ok)
     return filters, scale, rsum, ok
 
 
 def separable_filters(lines: np.ndarray, cores: np.ndarray, counts: np.ndarray, h: float,
-                      var_add: float, floor: float
+                      var_add: float, floor: float, out: tuple = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`position_filters` for separable spots (a polar detector), without the images:
     ``lines, cores (5, n, p)`` the renders' lines along block x and cores along block y
@@ -383,16 +381,27 @@ def separable_filters(lines: np.ndarray, cores: np.ndarray, counts: np.ndarray, 
     ``+h`` along x, ``-h`` and ``+h`` along y; render ``k``'s pixel ``(i, j)`` is
     ``float32(cores[k, :, i] lines[k, :, j]) counts`` (``counts (n,)``: unit light to
     counts), the values the frame path's renders give. Returns what
-    :func:`position_filters` returns for those renders, bit for bit."""
+    :func:`position_filters` returns for those renders, bit for bit (into ``out`` as there)."""
     k, n, p = lines.shape
     if k != 5 or cores.shape != lines.shape or np.shape(counts) != (n,):
         raise ValueError("separable_filters: lines and cores (5, n, p), counts (n,)")
-    filters = np.empty((n, 2, p * p), dtype=np.int16)
-    scale = np.empty((n, 2))
-    rsum = np.empty((n, 2))
-    ok = np.empty(n, dtype=np.bool_)
+    filters, scale, rsum, ok = _outputs(n, p, out)
     _separable_filters(np.ascontiguousarray(lines, dtype=np.float64),
                        np.ascontiguousarray(cores, dtype=np.float64),
                        np.ascontiguousarray(counts, dtype=np.float64), float(h), float(var_add),
                        float(floor), filters, scale, rsum, ok)
     return filters, scale, rsum, ok
+
+
+def _outputs(n: int, p: int, out: tuple | None) -> tuple:
+    """``(filters (n, 2, p*p) int16, scale (n, 2), rsum (n, 2), ok (n,) bool)``: ``out``
+    checked, or new arrays."""
+    want = (((n, 2, p * p), np.int16), ((n, 2), np.float64), ((n, 2), np.float64),
+            ((n,), np.bool_))
+    if out is None:
+        return tuple(np.empty(shape, dtype=dtype) for shape, dtype in want)
+    if len(out) != 4 or any(a.shape != shape or a.dtype != dtype or not a.flags.c_contiguous
+                            for a, (shape, dtype) in zip(out, want)):
+        raise ValueError(f"filters: out must be C-contiguous arrays of shapes and types "
+                         f"{[(sh, np.dtype(t).name) for sh, t in want]}")
+    return tuple(out)
