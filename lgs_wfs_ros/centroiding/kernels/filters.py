@@ -170,16 +170,7 @@ def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r
             a[1, k] = (yp[i, j] - ym[i, j]) * du
             a[2, k] = v * unit
             w[k] = 1.0 / max(max(v, 0.0) + var_add, floor)
-    g00 = g01 = g02 = g11 = g12 = g22 = 0.0
-    for k in range(pp):
-        u0 = a[0, k] * w[k]
-        u1 = a[1, k] * w[k]
-        g00 += u0 * a[0, k]
-        g01 += u0 * a[1, k]
-        g02 += u0 * a[2, k]
-        g11 += u1 * a[1, k]
-        g12 += u1 * a[2, k]
-        g22 += a[2, k] * w[k] * a[2, k]
+    g00, g01, g02, g11, g12, g22 = _gram(a, w, pp)
     good = flux > 0 and g00 > 0 and g11 > 0 and g22 > 0
     d0 = d1 = det = c00 = c01 = c02 = c11 = c12 = 1.0
     if good:
@@ -203,6 +194,40 @@ def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r
     # rows 0 and 1 of the inverse, unscaled
     i00, i01, i02 = c00 / det / (d0 * d0), c01 / det / (d0 * d1), c02 / det / (d0 * d2)
     i11, i12 = c11 / det / (d1 * d1), c12 / det / (d1 * d2)
+    e00, e01, e02, e10, e11, e12, t0, t1 = _rows(a, w, pp, i00, i01, i02, i11, i12, r)
+    resid = max(abs(e00 - 1.0), abs(e01), abs(e02), abs(e10), abs(e11 - 1.0), abs(e12))
+    for q in range(2):
+        top = t0 if q == 0 else t1
+        sc = top / 32767.0 if top > 0 else 1.0
+        scale[q] = sc
+        rsum[q] = _quantize_row(r[q], pp, 1.0 / sc, filters[q]) * sc
+    return resid <= 1e-6
+
+
+# The sums over a block's pixels of _block_solve, on its contiguous scratch rows a (3, pp),
+# w (pp,), r (2, pp), compiled with reassociation (vectorised): their order depends on pp
+# alone, not on the strides of the renders _block_solve read a and w from, so crops of a
+# canvas and whole renders still give the same filters bit for bit (0.186 -> 0.155 s CPU for
+# the 25 positions of a cartesian full pupil)
+
+
+def _gram_impl(a, w, pp):
+    # the weighted Gram matrix A^T W A's six distinct entries
+    g00 = g01 = g02 = g11 = g12 = g22 = 0.0
+    for k in range(pp):
+        u0 = a[0, k] * w[k]
+        u1 = a[1, k] * w[k]
+        g00 += u0 * a[0, k]
+        g01 += u0 * a[1, k]
+        g02 += u0 * a[2, k]
+        g11 += u1 * a[1, k]
+        g12 += u1 * a[2, k]
+        g22 += a[2, k] * w[k] * a[2, k]
+    return g00, g01, g02, g11, g12, g22
+
+
+def _rows_impl(a, w, pp, i00, i01, i02, i11, i12, r):
+    # the filter rows R = M G^-1 A^T W into r, R A's six entries, each row's largest |value|
     e00 = e01 = e02 = e10 = e11 = e12 = 0.0
     t0 = 0.0
     t1 = 0.0
@@ -219,19 +244,17 @@ def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r
         e12 += r1 * a[2, k]
         t0 = max(t0, abs(r0))
         t1 = max(t1, abs(r1))
-    resid = max(abs(e00 - 1.0), abs(e01), abs(e02), abs(e10), abs(e11 - 1.0), abs(e12))
-    for q in range(2):
-        top = t0 if q == 0 else t1
-        sc = top / 32767.0 if top > 0 else 1.0
-        inv = 1.0 / sc
-        scale[q] = sc
-        acc = 0.0
-        for k in range(pp):
-            v = np.rint(r[q, k] * inv)
-            filters[q, k] = np.int16(v)
-            acc += v
-        rsum[q] = acc * sc
-    return resid <= 1e-6
+    return e00, e01, e02, e10, e11, e12, t0, t1
+
+
+def _quantize_row_impl(row, pp, inv, out):
+    # out = rint(row * inv) as int16; returns the sum of the rounded values
+    acc = 0.0
+    for k in range(pp):
+        v = np.rint(row[k] * inv)
+        out[k] = np.int16(v)
+        acc += v
+    return acc
 
 
 def _position_filters_impl(img, xm, xp, ym, yp, h, var_add, floor, filters, scale, rsum, ok):
@@ -278,6 +301,11 @@ if _jit.COMPILED:
     _grid_filter = _jit.numba.njit(cache=True, nogil=True, fastmath=True)(_grid_filter_impl)
     # no reassociation: the sums keep one order whatever the arrays' strides, so crops of a
     # canvas and whole renders of the same values give the same filters bit for bit
+    _sums = dict(cache=True, nogil=True, error_model="numpy",
+                 fastmath={"reassoc", "contract", "nsz"})
+    _gram = _jit.numba.njit(**_sums)(_gram_impl)
+    _rows = _jit.numba.njit(**_sums)(_rows_impl)
+    _quantize_row = _jit.numba.njit(**_sums)(_quantize_row_impl)
     _block_solve = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
         _block_solve_impl)
     _position_filters = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
