@@ -136,14 +136,10 @@ def test_the_grid_rendered_on_canvases_gives_the_renders_of_each_position(monkey
     derivatives along x and y swapped, are far from them."""
     sensor = small("cartesian")
 
-    def derivatives(images):
-        img, xm, xp, ym, yp, h = images
-        return img, (xp - xm) / (2 * h), (yp - ym) / (2 * h)
-
     for opts in ({}, {"grid": 3, "spacing_px": 1.0}):
         c = table.build("gmf", sensor, opts)
-        new = {k: derivatives(v) for k, *v in c._position_images(c.pupil)}
-        old = {k: derivatives(v) for k, *v in c._position_images(c.pupil, canvas=False)}
+        new = {k: v for k, *v in c._position_images(c.pupil)}
+        old = {k: v for k, *v in c._position_images(c.pupil, canvas=False)}
         assert sorted(new) == sorted(old) == list(range(c.positions.size ** 2))
         for k in new:
             np.testing.assert_array_equal(new[k][0], old[k][0])
@@ -218,7 +214,7 @@ def test_refits_take_turns_with_two_tables_and_fill_them_whole(detector):
     wrong = (np.empty((2, 2, 16), dtype=np.float32), np.empty((2, 2)), np.empty((2, 2)),
              np.empty(2, dtype=bool))                            # float filters: refused
     with pytest.raises(ValueError, match="out must be"):
-        kernels.position_filters(*np.ones((5, 2, 4, 4)), 0.01, 1.0, 1.0, out=wrong)
+        kernels.position_filters(*np.ones((3, 2, 4, 4)), 1.0, 1.0, out=wrong)
 
 
 def test_quantized_rows_are_the_filters_to_half_a_step():
@@ -251,14 +247,15 @@ def test_the_compiled_build_gives_the_numpy_filters(monkeypatch, detector):
     np.testing.assert_array_equal(new["ok"], old["ok"])
     assert new["ok"].all()
 
-    _, *img, h = next(iter(c._position_images(c.pupil)))
-    img = np.array(img)                                                   # (5, n, p, p)
+    _, *img = next(iter(c._position_images(c.pupil)))
+    img = np.array(img)                                                   # (3, n, p, p)
     img[:, 3] = 0.0                                                       # a dark block
-    f, s, rs, ok = kernels.position_filters(*img, h, 3.5, 1.0)
+    f, s, rs, ok = kernels.position_filters(*img, 3.5, 1.0)
     assert not ok[3] and np.all(f[3] == 0) and np.all(rs[3] == 0) and ok[np.arange(c.n) != 3].all()
-    # a plausibly wrong build: the derivative step off by 2 (gain 2), or no variance floor
-    assert not np.allclose(s, kernels.position_filters(*img, 2 * h, 3.5, 1.0)[1], rtol=0.1)
-    assert not np.array_equal(f, kernels.position_filters(*img, h, 0.0, 1e-9)[0])
+    # a plausibly wrong build: derivatives off by 2 (the step's; gain 2), or no variance floor
+    doubled = kernels.position_filters(img[0], 2 * img[1], 2 * img[2], 3.5, 1.0)[1]
+    assert not np.allclose(s, doubled, rtol=0.1)
+    assert not np.array_equal(f, kernels.position_filters(*img, 0.0, 1e-9)[0])
 
 
 @pytest.mark.skipif(not (fast_frames.AVAILABLE and kernels.AVAILABLE),

@@ -54,16 +54,16 @@ from .cog import TabledCoG
 DERIVATIVE_STEP = 0.01
 
 
-def _numpy_filters(img, xm, xp, ym, yp, h, var_add, floor):
+def _numpy_filters(img, dx, dy, var_add, floor):
     """:func:`.kernels.position_filters` in numpy (without numba): one grid position's
-    ``(filters (n, 2, p*p) int16, scale (n, 2), rsum (n, 2), ok (n,))`` from its renders
-    ``(n, p, p)`` counts, through :func:`.cmf.solve_filter` and :func:`.kernels.quantize`."""
+    ``(filters (n, 2, p*p) int16, scale (n, 2), rsum (n, 2), ok (n,))`` from its render
+    and derivatives ``(n, p, p)`` counts (a px), through :func:`.cmf.solve_filter` and
+    :func:`.kernels.quantize`."""
     n = img.shape[0]
     img = img.reshape(n, -1)
     flux = img.sum(axis=1)
     unit = np.where(flux > 0, 1.0 / np.where(flux > 0, flux, 1.0), 0.0)[:, None]
-    design = np.stack([((xp - xm) / (2 * h)).reshape(n, -1) * unit,
-                       ((yp - ym) / (2 * h)).reshape(n, -1) * unit,
+    design = np.stack([dx.reshape(n, -1) * unit, dy.reshape(n, -1) * unit,
                        img * unit], axis=2)                               # (n, pp, 3)
     var = np.maximum(np.maximum(img, 0.0) + var_add, floor)
     r, good = solve_filter(design, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var)
@@ -154,13 +154,12 @@ class GMF(TabledCoG):
             np.empty((self.positions.size ** 2, self.n), dtype=bool))
 
     def _position_images(self, calibration, canvas: bool = True):
-        """Yield ``(k, img, xm, xp, ym, yp, h)`` for every grid position ``k`` (``ky G +
-        kx``, at ``(positions[kx], positions[ky])``): the calibration's spots there, counts
-        ``(n, p, p)``, and what gives their derivatives along block x and y as the central
-        differences ``(xp - xm) / 2h``, ``(yp - ym) / 2h``: the same spots
-        :data:`DERIVATIVE_STEP` px (``h``) before and after the position, rendered, or, on
-        cartesian pixels with the compiled renderer, the renderer's own derivatives as ``xp``
-        and ``yp`` with zeros for ``xm``, ``ym`` and ``h`` = 0.5. There each distinct sub-pixel
+        """Yield ``(k, img, dx, dy)`` for every grid position ``k`` (``ky G + kx``, at
+        ``(positions[kx], positions[ky])``): the calibration's spots there, counts ``(n, p,
+        p)``, and their derivatives along block x and y, counts a px: the central
+        differences (:func:`.kernels.central_differences`) of the same spots rendered
+        :data:`DERIVATIVE_STEP` px before and after the position, or, on cartesian pixels
+        with the compiled renderer, the renderer's own. There each distinct sub-pixel
         phase of the grid is rendered once with its derivatives, on a canvas wider than the
         block, and the positions whole pixels from it are crops of that canvas
         (:meth:`..optics.fast_frames.FastRenderer.canvas_derivatives`: the default 5 x 5 grid,
@@ -172,14 +171,14 @@ class GMF(TabledCoG):
             image_at = self._renders(calibration)
             for ky, kx in np.ndindex(side, side):
                 d = np.tile([g[kx], g[ky]], (n, 1))
-                yield (ky * side + kx, image_at(d), image_at(d - [h, 0.0]),
-                       image_at(d + [h, 0.0]), image_at(d - [0.0, h]), image_at(d + [0.0, h]), h)
+                dx = kernels.central_differences(image_at(d - [h, 0.0]), image_at(d + [h, 0.0]), h)
+                dy = kernels.central_differences(image_at(d - [0.0, h]), image_at(d + [0.0, h]), h)
+                yield ky * side + kx, image_at(d), dx, dy
             return
         renderer, model, scale = self._fast(calibration)
         whole = np.floor(g + 1e-9).astype(int)              # a position = whole px + phase
         phase = np.round(g - whole, 9)
         m, p = int(np.abs(whole).max()), self.p
-        zero = np.zeros((n, p, p))
         for fy in np.unique(phase):
             for fx in np.unique(phase):
                 # counts of the spots at (fx, fy) px on the canvas, through float32 as the
@@ -192,8 +191,8 @@ class GMF(TabledCoG):
                     for kx in np.flatnonzero(phase == fx):
                         rows = slice(m - whole[ky], m - whole[ky] + p)     # moved by whole px
                         cols = slice(m - whole[kx], m - whole[kx] + p)
-                        yield (ky * side + kx, c0[:, rows, cols], zero, dx[:, rows, cols], zero,
-                               dy[:, rows, cols], 0.5)
+                        yield (ky * side + kx, c0[:, rows, cols], dx[:, rows, cols],
+                               dy[:, rows, cols])
 
     def _separable(self) -> bool:
         """Whether a refit builds the filters from 1-D lines (:meth:`_position_lines`): a

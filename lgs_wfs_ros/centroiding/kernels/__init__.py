@@ -15,8 +15,9 @@ in registers. Outside the pupil nothing is read. One module per estimator family
   filter ``[R; 1]`` of ``(n, k, p*p)``); :func:`filter_flux`, the CMF's ``R`` ``(n, 2,
   p*p)`` plus each block's pixel sum (the flux), 2/3 of the weight traffic of ``[R; 1]``;
   :func:`grid_filter`, the grid of filters (``cmf``'s default); at a refit,
-  :func:`position_filters`, one grid position's filters from its renders
-  (:func:`separable_filters`: from separable spots' lines and cores).
+  :func:`position_filters`, one grid position's filters from its render and derivatives
+  (:func:`central_differences` of renders, or a renderer's own; :func:`separable_filters`:
+  from separable spots' lines and cores).
 - :mod:`.ml`: :func:`ml_search`, the ML estimator's marginals, calibrated-CoG start and hill
   climb on its likelihood tables, one pass over each block.
 - :mod:`.corr`: :func:`corr_peak`, the correlation centroider's map at the 3 x 3 whole lags
@@ -43,17 +44,17 @@ from .bins import (GRID_SLOTS, bins_shifts, block_bins, grid_bins, hyper_contrac
 from .blocks import (add_counts, block_marginals, block_origins, block_rows, cog_moments, fits,
                      origins, quantize, stack_origins, stack_view)
 from .corr import CORR_PAD, corr_peak, corr_rows
-from .filters import (block_contract, filter_flux, grid_filter, position_filters,
-                      separable_filters)
+from .filters import (block_contract, central_differences, filter_flux, grid_filter,
+                      position_filters, separable_filters)
 from .ml import ml_search
 from .response import invert_response
 
 __all__ = ["AVAILABLE", "CORR_PAD", "GRID_SLOTS", "add_counts", "bins_shifts", "block_bins",
-           "block_contract", "block_marginals", "block_origins", "block_rows", "cog_moments",
-           "corr_peak", "corr_rows", "filter_flux", "fits", "grid_bins", "grid_filter",
-           "hyper_contract", "hyper_contract_moved", "invert_response", "ml_search", "origins",
-           "position_filters", "quantize", "response_inverse", "separable_filters",
-           "stack_origins", "stack_view", "warm_up"]
+           "block_contract", "block_marginals", "block_origins", "block_rows",
+           "central_differences", "cog_moments", "corr_peak", "corr_rows", "filter_flux", "fits",
+           "grid_bins", "grid_filter", "hyper_contract", "hyper_contract_moved",
+           "invert_response", "ml_search", "origins", "position_filters", "quantize",
+           "response_inverse", "separable_filters", "stack_origins", "stack_view", "warm_up"]
 
 _warm = False
 
@@ -92,7 +93,7 @@ def warm_up() -> None:
                          np.zeros((1, 3, 2), np.float32), np.zeros(1), 0.25)
     response_inverse(np.zeros(1), np.array([[-1.0, 0.0, 1.0]]), np.array([-1.0, 0.0, 1.0]), np.ones(1))
     img = np.ones((1, 4, 4))
-    position_filters(img, img, img, img, img, 0.01, 1.0, 1.0)
-    position_filters(*(np.ones((1, 6, 6))[:, 1:5, 1:5],) * 5, 0.01, 1.0, 1.0)   # canvas crops
+    position_filters(img, img, img, 1.0, 1.0)
+    position_filters(*(np.ones((1, 6, 6))[:, 1:5, 1:5],) * 3, 1.0, 1.0)   # canvas crops
     separable_filters(np.ones((5, 1, 4)), np.ones((5, 1, 4)), np.ones(1), 0.01, 1.0, 1.0)
     _warm = True

@@ -144,11 +144,9 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
         out[b, 1] = ey
 
 
-def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r,
-                      filters, scale, rsum):
-    # one block, from its render img and the renders h px either side along x (xm, xp) and
-    # y (ym, yp), each (p, p) counts (half_step = 1 / 2h): the design A = [dI/dx, dI/dy,
-    # I] / flux, the weights W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance
+def _block_solve_impl(img, dx, dy, p, var_add, floor, a, w, r, filters, scale, rsum):
+    # one block, from its render img and its derivatives along x and y, each (p, p) counts
+    # (a px for the derivatives): the design A = [dI/dx, dI/dy, I] / flux, the weights W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance
     # filter R = M (A^T W A)^-1 A^T W with M = [[1, 0, 0], [0, 1, 0]] (cmf.solve_filter,
     # the Gram matrix scaled to a unit diagonal before its inverse), then R as int16 rows
     # with one scale each (blocks.quantize) into filters (2, p*p), scale (2,), rsum (2,),
@@ -161,13 +159,12 @@ def _block_solve_impl(img, xm, xp, ym, yp, p, half_step, var_add, floor, a, w, r
         for j in range(p):
             flux += img[i, j]
     unit = 1.0 / flux if flux > 0 else 0.0
-    du = half_step * unit
     for i in range(p):
         for j in range(p):
             k = i * p + j
             v = img[i, j]
-            a[0, k] = (xp[i, j] - xm[i, j]) * du
-            a[1, k] = (yp[i, j] - ym[i, j]) * du
+            a[0, k] = dx[i, j] * unit
+            a[1, k] = dy[i, j] * unit
             a[2, k] = v * unit
             w[k] = 1.0 / max(max(v, 0.0) + var_add, floor)
     g00, g01, g02, g11, g12, g22 = _gram(a, w, pp)
@@ -257,30 +254,33 @@ def _quantize_row_impl(row, pp, inv, out):
     return acc
 
 
-def _position_filters_impl(img, xm, xp, ym, yp, h, var_add, floor, filters, scale, rsum, ok):
-    # every block through _block_solve, its five renders read in place (n, p, p), any
-    # strides (crops of a wider canvas)
+def _position_filters_impl(img, dx, dy, var_add, floor, filters, scale, rsum, ok):
+    # every block through _block_solve, its render and derivatives read in place (n, p, p),
+    # any strides (crops of a wider canvas)
     n, p = img.shape[0], img.shape[1]
     pp = p * p
     a = np.empty((3, pp))
     w = np.empty(pp)
     r = np.empty((2, pp))
     for b in range(n):
-        ok[b] = _block_solve(img[b], xm[b], xp[b], ym[b], yp[b], p, 0.5 / h, var_add, floor,
-                             a, w, r, filters[b], scale[b], rsum[b])
+        ok[b] = _block_solve(img[b], dx[b], dy[b], p, var_add, floor, a, w, r,
+                             filters[b], scale[b], rsum[b])
 
 
 def _separable_filters_impl(lines, cores, counts, h, var_add, floor, filters, scale, rsum, ok):
     # every block through _block_solve, its five renders formed from separable spots: render
     # k's pixel (i, j) is float32(cores[k, b, i] lines[k, b, j]) times counts[b], as the
     # polar renderer writes a noise-free block (FastRenderer.polar_lines) and the frame path
-    # scales it (renders in the order img, xm, xp, ym, yp)
+    # scales it (renders in the order img, xm, xp, ym, yp); the derivatives are their
+    # central differences as central_differences takes them
     n, p = lines.shape[1], lines.shape[2]
     pp = p * p
+    half_step = 0.5 / h
     a = np.empty((3, pp))
     w = np.empty(pp)
     r = np.empty((2, pp))
     im = np.empty((5, p, p))
+    d = np.empty((2, p, p))
     for b in range(n):
         c = counts[b]
         for k in range(5):
@@ -288,8 +288,12 @@ def _separable_filters_impl(lines, cores, counts, h, var_add, floor, filters, sc
                 ck = cores[k, b, i]
                 for j in range(p):
                     im[k, i, j] = np.float64(np.float32(ck * lines[k, b, j])) * c
-        ok[b] = _block_solve(im[0], im[1], im[2], im[3], im[4], p, 0.5 / h, var_add, floor,
-                             a, w, r, filters[b], scale[b], rsum[b])
+        for i in range(p):
+            for j in range(p):
+                d[0, i, j] = (im[2, i, j] - im[1, i, j]) * half_step
+                d[1, i, j] = (im[4, i, j] - im[3, i, j]) * half_step
+        ok[b] = _block_solve(im[0], d[0], d[1], p, var_add, floor, a, w, r,
+                             filters[b], scale[b], rsum[b])
 
 if _jit.COMPILED:
     from .blocks import (FRAME_AHEAD, _block_moments, _prefetch_block, _rows_int16,
@@ -377,16 +381,24 @@ def grid_filter(frame: np.ndarray, origins: np.ndarray, p: int, bias: np.ndarray
     return out, index
 
 
-def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.ndarray,
-                     yp: np.ndarray, h: float, var_add: float, floor: float, out: tuple = None
+def central_differences(minus: np.ndarray, plus: np.ndarray, h: float) -> np.ndarray:
+    """``(plus - minus) / 2h``, as ``(plus - minus) * (0.5 / h)``: the derivative of renders
+    ``h`` px either side of a position, the same values :func:`separable_filters` takes
+    from its lines (so both builds give the same filters bit for bit)."""
+    return (plus - minus) * (0.5 / h)
+
+
+def position_filters(img: np.ndarray, dx: np.ndarray, dy: np.ndarray, var_add: float,
+                     floor: float, out: tuple = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The grid's filters of one reference position (:class:`.gmf.GMF`), one compiled pass
     over the blocks (a refit's filters without numpy's ``(n, p*p, 3)`` temporaries).
 
-    ``img (n, p, p)`` counts of each block's reference at the position, ``xm, xp, ym, yp``
-    the same renders ``h`` px either side along block x and y (float64, any strides: crops
+    ``img (n, p, p)`` counts of each block's reference at the position, ``dx, dy`` its
+    derivatives along block x and y, counts a px (a renderer's own, or
+    :func:`central_differences` of renders either side), all float64, any strides (crops
     of a wider canvas are read in place). Per block: the CMF of :func:`..cmf.solve_filter`
-    with the design ``[(xp - xm) / 2h, (yp - ym) / 2h, img] / sum(img)``, constraint
+    with the design ``[dx, dy, img] / sum(img)``, constraint
     ``[[1, 0, 0], [0, 1, 0]]`` and pixel variances ``max(max(img, 0) + var_add, floor)``,
     quantized as :func:`.blocks.quantize` does. Returns ``(filters (n, 2, p*p)`` int16,
     ``scale (n, 2)``, ``rsum (n, 2)`` the sums of ``scale * filters``, ``ok (n,)``: True
@@ -395,8 +407,7 @@ def position_filters(img: np.ndarray, xm: np.ndarray, xp: np.ndarray, ym: np.nda
     one position's slices of a refit's table), filled and returned."""
     n, p = img.shape[0], img.shape[1]
     filters, scale, rsum, ok = _outputs(n, p, out)
-    _position_filters(img, xm, xp, ym, yp, float(h), float(var_add), float(floor),
-                      filters, scale, rsum, ok)
+    _position_filters(img, dx, dy, float(var_add), float(floor), filters, scale, rsum, ok)
     return filters, scale, rsum, ok
 
 
