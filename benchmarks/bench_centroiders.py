@@ -11,7 +11,10 @@ Each row is the median CPU time (the process's) of its calls; the note gives the
 the median wall time.
 The ANN is timed with a 256-16-2 MLP (tanh hidden layer, random weights) built here with
 onnx.helper, run by onnxruntime with one intra-op thread.
-Refits: the CPU of one inline (``cmf`` cartesian, ``ml`` polar), and whether ``ml`` with its
+Per-frame rows on the simulator's frames in sequence (evolving profiles, frozen flow, each
+frame new, as a live node gets them) beside those on one frame repeated (a floor).
+Refits: the CPU of one inline (``cmf`` cartesian, ``ml`` polar; on a static profile and on
+the simulator's evolving one, whose fit iterates more), and whether ``ml`` with its
 refits in a thread, one period late, keeps up with frames offered at 700 Hz (wall time:
 the rate the frames went through, the frames over 5 ms, the process's CPU in cores), and
 how often ``cmf``'s refits, in a thread and installed when ready, land on a live

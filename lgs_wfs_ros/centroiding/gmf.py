@@ -31,9 +31,10 @@ the whole-pixel moves cropped from it (4 renders instead of 125 and their centra
 differences), on polar pixels each spot's line and core alone (:meth:`GMF._position_lines`,
 no image, central differences); then each position's filters in one compiled pass
 (:func:`.kernels.position_filters`, :func:`.kernels.separable_filters`), 72 MB in int16
-for the full pupil (:func:`.kernels.quantize`). A full-pupil refit takes ~0.43 s CPU
-cartesian, ~0.37 s polar (benchmarks/results.json, 2026-11-29). Refits can run in a background thread
-(``pupil_async``), as for every pupil-calibrated estimator.
+for the full pupil (:func:`.kernels.quantize`). A full-pupil refit takes ~0.43-0.6 s CPU
+cartesian on this host (more when the profile evolves and the fit iterates;
+benchmarks/results.json). Refits can run in a background thread (``pupil_async``), as for
+every pupil-calibrated estimator.
 """
 
 from __future__ import annotations

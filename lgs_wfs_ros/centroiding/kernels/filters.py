@@ -145,8 +145,9 @@ def _grid_filter_impl(frame, origins, p, bias, filters, scale, rsum, positions, 
 
 
 def _block_solve_impl(img, dx, dy, p, var_add, floor, a, w, r, filters, scale, rsum):
-    # one block, from its render img and its derivatives along x and y, each (p, p) counts
-    # (a px for the derivatives): the design A = [dI/dx, dI/dy, I] / flux, the weights W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance
+    # one block, from its render img and its derivatives dx, dy along x and y, each (p, p)
+    # counts (a px for the derivatives): the design A = [dI/dx, dI/dy, I] / flux, the
+    # weights W = 1 / max(max(I, 0) + var_add, floor), the minimum-variance
     # filter R = M (A^T W A)^-1 A^T W with M = [[1, 0, 0], [0, 1, 0]] (cmf.solve_filter,
     # the Gram matrix scaled to a unit diagonal before its inverse), then R as int16 rows
     # with one scale each (blocks.quantize) into filters (2, p*p), scale (2,), rsum (2,),
