@@ -539,7 +539,7 @@ class PupilCalibration:
         for _ in range(iterations):
             d = self._pull(cs0 @ x, cs1 @ x)
             c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
-            g = dbo @ x                                      # (m, nb) the shift's direction
+            g = np.einsum("snk,k->sn", dbo, x)              # (m, nb) the shift's direction
             if used is not None and (np.abs(d - used[0]).max() <= PULL_TOL_PX
                                      and np.abs(c - used[1]).max() <= FRACTION_TOL
                                      and _turned(g, used[2]) <= DIRECTION_TOL):
@@ -552,8 +552,7 @@ class PupilCalibration:
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
-            rhs = (np.einsum("snk,sn->k", bo, w) + np.einsum("snk,sn->k", dbo, w * d[:, None])
-                   + rhs_free)
+            rhs = np.einsum("snk,sn->k", bo, w) + _moved_sum(dbo, w, d) + rhs_free
             x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
@@ -577,7 +576,10 @@ class PupilCalibration:
         norm = np.sqrt(np.einsum("sn,sn->s", g, g))
         live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
         u = np.where(live[:, None], g / np.where(live, norm, 1.0)[:, None], 0.0)
-        v = np.einsum("snk,sn->sk", b, u) + d[:, None] * np.einsum("snk,sn->sk", db, u)
+        v = np.einsum("snk,sn->sk", b, u)
+        moved = np.flatnonzero(d)                  # the pulled ones only: one pass fewer
+        if moved.size:
+            v[moved] += d[moved, None] * np.einsum("snk,sn->sk", db[moved], u[moved])
         uw = np.einsum("sn,sn->s", u, w)
         q = r * norm
         a = max(float(q @ q), 1e-300)
@@ -762,6 +764,17 @@ class PupilCalibration:
                 "trend": self.trend, "altitude_s": self.altitude_s,
                 "nodes": int(self.nodes_m.size),
                 "harmonic_altitude_m": round(alt, 1), "altitude_drift_m": drift}
+
+
+def _moved_sum(db: np.ndarray, w: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``(K,)``: ``sum_s d_s B'_s^T w_s`` over the subapertures the pull moves (``d_s`` not
+    0; ``db (m, nb, K)``, ``w (m, nb)``): the moved models' share of the right-hand side,
+    without a pass over those that do not move (all of them on most pupils' steady
+    profiles)."""
+    moved = np.flatnonzero(d)
+    if moved.size == 0:
+        return np.zeros(db.shape[2])
+    return np.einsum("snk,sn->k", db[moved], w[moved] * d[moved, None])
 
 
 def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
