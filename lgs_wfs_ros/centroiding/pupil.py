@@ -159,6 +159,8 @@ class PupilCalibration:
         self.light_drift = None
         self._drift_at = (0.0, 1.0)              # (frame light is predicted for, frames to light_drift's)
         self._drift_refs = None                  # (version, counts of light_drift's reference)
+        self._drift_margs = None                 # (version, its marginals in counts)
+        self.drift_marginals_only = False        # what _work prepares: set by ml
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
@@ -346,7 +348,10 @@ class PupilCalibration:
             clone.cog_bias()
         if self.want_response:                               # a linearised CoG's
             clone.cog_response()
-        clone.drift_counts()                                 # what _follow_drift reads
+        if self.drift_marginals_only:                        # what _follow_drift reads
+            clone.drift_marginals()
+        else:
+            clone.drift_counts()
         return clone, payload
 
     def _poll(self) -> bool:
@@ -451,6 +456,25 @@ class PupilCalibration:
             img = ps.image_at(np.zeros((self.n, 2)))
             self._drift_refs = (self.version, img * self._to_counts(img))
         return self._drift_refs[1]
+
+    def drift_marginals(self) -> np.ndarray | None:
+        """``(n, 2, p)`` polar detector: :meth:`drift_counts`' column and row sums (as
+        :meth:`marginal_buffer` lays them out), from the spot model without the images
+        (cached per refit), or None without a drift."""
+        if self.light_drift is None:
+            return None
+        if self._drift_margs is None or self._drift_margs[0] != self.version:
+            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
+                              self.light_drift, self.max_shift_px)
+            self._drift_margs = (self.version,
+                                 self.marginals_in_counts(ps.marginals_at(np.zeros((self.n, 2)))))
+        return self._drift_margs[1]
+
+    def marginals_in_counts(self, marginals: np.ndarray) -> np.ndarray:
+        """``marginals (n, 2, p)`` of unit-light spots (column sums first) scaled to counts as
+        :meth:`counts` scales their images: the field's light at :meth:`_flux`."""
+        tot = marginals[:, 0].sum(axis=1)
+        return marginals * (self._flux() / np.where(tot > 0, tot, 1.0))[:, None, None]
 
     def _predicted(self, frames: int, a: float, a_slow: float, later_s: float = 0.0) -> np.ndarray:
         """The projected means the fit uses: the average itself, or (``trend``) extrapolated
@@ -827,7 +851,8 @@ def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
               "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum",
-              "_gram", "_rough", "_spread", "light_drift", "_drift_at", "_drift_refs")
+              "_gram", "_rough", "_spread", "light_drift", "_drift_at", "_drift_refs",
+              "_drift_margs")
 
 # The CoG's response (cog_response): scanned over +-1.4 px per block axis (3 sigma of the
 # shifts a closed loop leaves, 0.46 px rms per axis; a corner, rotated to the detector's
