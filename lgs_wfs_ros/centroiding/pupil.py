@@ -110,6 +110,7 @@ class PupilCalibration:
         self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
         self.want_response = False   # a background refit also fits cog_response (set by cog)
+        self.drift_marginals_only = False    # it prepares drift_marginals, not drift_counts (ml)
         self.payload = None
         self._pool = None
         self._job = None
@@ -160,7 +161,6 @@ class PupilCalibration:
         self._drift_at = (0.0, 1.0)              # (frame light is predicted for, frames to light_drift's)
         self._drift_refs = None                  # (version, counts of light_drift's reference)
         self._drift_margs = None                 # (version, its marginals in counts)
-        self.drift_marginals_only = False        # what _work prepares: set by ml
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
