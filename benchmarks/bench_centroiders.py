@@ -123,13 +123,14 @@ def _sequence_rows(quick: bool) -> list[dict]:
                 c.centroid(f)
             cpu, wall = [], []
             buf = np.empty_like(frames[0])
+            pupil = getattr(c, "pupil", None)
             for f in frames[SEQUENCE_WARM:]:
                 buf[...] = f                 # as received: a live node's transport writes it
-                fits = c.pupil.fits if getattr(c, "pupil", None) is not None else 0
+                fits = pupil.fits if pupil is not None else 0
                 c0, t0 = time.process_time(), time.perf_counter()
                 c.centroid(buf)
                 dc, dw = time.process_time() - c0, time.perf_counter() - t0
-                if getattr(c, "pupil", None) is None or c.pupil.fits == fits:
+                if pupil is None or pupil.fits == fits:
                     cpu.append(dc)
                     wall.append(dw)
             cpu_ms, wall_ms = np.asarray(cpu) * 1e3, np.asarray(wall) * 1e3

@@ -77,7 +77,6 @@ class Tables:
         # phase 0 is the spot at the true centre: its CoG in the field is the calibrated
         # CoG's bias (what pupil.cog_bias gives, without rendering the reference again)
         centred = marg[:, :, 0, self.margin:self.margin + p]
-        self.centred = centred.copy()                                          # (n, 2, p)
         with np.errstate(divide="ignore", invalid="ignore"):
             bias = centred @ (np.arange(p) - (p - 1) / 2.0) / centred.sum(axis=2)
         self.bias = np.where(np.isfinite(bias), bias, 0.0)                    # (n, 2)
@@ -162,13 +161,14 @@ class ML(TabledCoG):
     def _follow_drift_marginals(self) -> None:
         """:meth:`Centroider._follow_drift` from marginals, all this estimator reads: the
         drifted reference's (:meth:`.PupilCalibration.drift_marginals`) less the current
-        one's (its tables' spot at the true centre), without rendering either image (two
-        numpy renders a refit, ~0.07 s of a full polar pupil's)."""
+        one's (:meth:`.PupilCalibration.reference_marginals`, the same render path: its
+        tables' wider field, cropped, moved the high layer's ratio to the bound by +0.0014),
+        without rendering either image."""
         drifted = self.pupil.drift_marginals()
         if drifted is None:
             self._drift = None
             return
-        ref = self.pupil.marginals_in_counts(self._tables.centred)
+        ref = self.pupil.reference_marginals()
         with np.errstate(divide="ignore", invalid="ignore"):
             moved = self._marginals_reading(drifted) - self._marginals_reading(ref)
         self._drift = np.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)
@@ -204,13 +204,14 @@ class ML(TabledCoG):
         stack = np.asarray(stack, dtype=np.float64)
         if tot is None:
             tot = stack.reshape(self.n, -1).sum(axis=1)
-        return np.stack([self._scan(stack.sum(axis=1), 0, tot),
-                         self._scan(stack.sum(axis=2), 1, tot)], axis=1)
+        return self._marginals_reading(np.stack([stack.sum(axis=1), stack.sum(axis=2)], axis=1),
+                                       tot)
 
-    def _marginals_reading(self, marg: np.ndarray) -> np.ndarray:
+    def _marginals_reading(self, marg: np.ndarray, tot: np.ndarray | None = None) -> np.ndarray:
         """:meth:`_reading` of counts given by their marginals ``(n, 2, p)`` (column sums,
-        then row sums)."""
-        tot = marg[:, 0].sum(axis=1)
+        then row sums; totals ``tot``, or the column sums' sums)."""
+        if tot is None:
+            tot = marg[:, 0].sum(axis=1)
         return np.stack([self._scan(marg[:, 0], 0, tot), self._scan(marg[:, 1], 1, tot)], axis=1)
 
     def _scan(self, marg: np.ndarray, axis: int, tot: np.ndarray) -> np.ndarray:

@@ -451,8 +451,7 @@ class PupilCalibration:
         if self.light_drift is None:
             return None
         if self._drift_refs is None or self._drift_refs[0] != self.version:
-            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
-                              self.light_drift, self.max_shift_px)
+            ps = self._spots_of(self.light_drift)
             img = ps.image_at(np.zeros((self.n, 2)))
             self._drift_refs = (self.version, img * self._to_counts(img))
         return self._drift_refs[1]
@@ -464,11 +463,21 @@ class PupilCalibration:
         if self.light_drift is None:
             return None
         if self._drift_margs is None or self._drift_margs[0] != self.version:
-            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
-                              self.light_drift, self.max_shift_px)
+            ps = self._spots_of(self.light_drift)
             self._drift_margs = (self.version,
                                  self.marginals_in_counts(ps.marginals_at(np.zeros((self.n, 2)))))
         return self._drift_margs[1]
+
+    def reference_marginals(self) -> np.ndarray:
+        """``(n, 2, p)`` polar detector: :meth:`reference_counts`' column and row sums, from
+        the spot model without the image (the same render path as :meth:`drift_marginals`,
+        so that their difference is the drift alone)."""
+        return self.marginals_in_counts(self.spots().marginals_at(np.zeros((self.n, 2))))
+
+    def _spots_of(self, light: np.ndarray) -> ProfileSpots:
+        """Noise-free spots of every subaperture for node light ``light (K,)``."""
+        return ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m, light,
+                            self.max_shift_px)
 
     def marginals_in_counts(self, marginals: np.ndarray) -> np.ndarray:
         """``marginals (n, 2, p)`` of unit-light spots (column sums first) scaled to counts as
@@ -647,8 +656,7 @@ class PupilCalibration:
     def spots(self) -> ProfileSpots:
         """Noise-free spots of the current profile for every subaperture (cached)."""
         if self._refs is None or self._refs[0] != self.version:
-            ps = ProfileSpots(self.sensor, self.layout.r_m, self.layout.e, self.nodes_m,
-                              self.light, self.max_shift_px)
+            ps = self._spots_of(self.light)
             self._refs = (self.version, ps, None, None)   # (version, spots, reference, image)
         return self._refs[1]
 
