@@ -102,6 +102,7 @@ LONG_ESTIMATORS = ("cog", "cog_pupil", "cog_offset", "cmf", "cmf_single", "ml", 
                    "ml_alt", "cmf_alt")
 AR1_RHO, AR1_RMS_PX = 0.95, 0.46
 SIDE_LAUNCH_M = 16.0
+FROZEN = ("frozen_inf", "frozen_30")
 
 
 def full_cases():
@@ -111,9 +112,16 @@ def full_cases():
             for launch in (0.0, SIDE_LAUNCH_M):
                 out.append((fam, det, launch, "ar1"))
     for fam in ("measured", "broad"):
-        for tilt in ("frozen_inf", "frozen_30"):
+        for tilt in FROZEN:
             out.append((fam, "polar", 0.0, tilt))
-    return out
+    return out + side_frozen_cases()
+
+
+def side_frozen_cases():
+    """A side launch under frozen flow, both detectors, both outer scales: the window's mean
+    tip towards the launch moves the spots as the profile's altitude does (docs/accuracy.md
+    "A side launch under frozen flow")."""
+    return [("measured", det, SIDE_LAUNCH_M, tilt) for det in ("polar", "cartesian") for tilt in FROZEN]
 
 
 def quick_cases():
@@ -121,7 +129,7 @@ def quick_cases():
     out += [("measured", "polar", SIDE_LAUNCH_M, "ar1"),
             ("measured", "cartesian", SIDE_LAUNCH_M, "ar1"),
             ("measured", "polar", 0.0, "frozen_inf"), ("measured", "polar", 0.0, "frozen_30")]
-    return out
+    return out + side_frozen_cases()
 
 
 # -- truth ---------------------------------------------------------------------------------------
@@ -391,11 +399,13 @@ def _case(args):
 
 
 def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = False,
-         jobs: int = 1, only: tuple = (), seed: int = 0) -> dict:
+         jobs: int = 1, only: tuple = (), seed: int = 0, add_cases: bool = False) -> dict:
     """Run the mode's cases; with ``only`` (labels, ``cog`` among them), run those
-    estimators alone and merge them into the mode's stored result (:func:`merge`). ``seed``
-    draws other frames (another start in the test block, layer, tilts and noise): its
-    results go to their own files (:func:`result_name`), the docs are left alone."""
+    estimators alone and merge them into the mode's stored result (:func:`merge`); with
+    ``add_cases``, run only the mode's cases the stored result lacks (every estimator it
+    holds) and add them to it (:func:`add`). ``seed`` draws other frames (another start in
+    the test block, layer, tilts and noise): its results go to their own files
+    (:func:`result_name`), the docs are left alone."""
     t_start = time.time()
     if long:
         warm, scored, cases, labels, t3_frames = 700, 700, quick_cases(), LONG_ESTIMATORS, 0
@@ -405,7 +415,16 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         warm, scored, cases, labels, t3_frames = 700, 700, full_cases(), tuple(ESTIMATORS), 7000
     name = result_name(long, seed)
     stored = None
-    if only:
+    if add_cases:
+        if only:
+            raise SystemExit("--add-cases runs every estimator of the stored result: no --only")
+        stored = json.loads((out_dir / f"{name}.json").read_text())
+        have = {_key(c) for c in stored["cases"]}
+        cases = [c for c in cases if c not in have]
+        labels = tuple(lb for lb in ESTIMATORS if any(lb in c["photons"]["1000"] for c in stored["cases"]))
+        if not cases:
+            raise SystemExit(f"--add-cases: {name}.json holds every case of this mode")
+    elif only:
         unknown = [lb for lb in only if lb not in ESTIMATORS]
         if unknown or "cog" not in only:
             raise SystemExit(f"--only: labels of ESTIMATORS, cog among them (it checks that the "
@@ -423,6 +442,8 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
     out = {"mode": mode, "what": what, "cases": [], "table3": []}
     if stored is not None:
         name += "_only"                                   # partial results beside the stored
+    if add_cases:
+        t3_frames = 0
     tasks = [(fam, det, launch, tilt, warm, scored, labels, seed) for fam, det, launch, tilt in cases]
     if jobs > 1:
         import multiprocessing
@@ -434,7 +455,7 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         for t in tasks:
             out["cases"].append(run_case(*t, log=log))
             _save(out, out_dir, t_start, name)
-    if not long:
+    if t3_frames:
         for det in ("polar", "cartesian"):
             c = run_case("measured", det, 0.0, "frozen_inf", 0, t3_frames, labels, seed=seed,
                          crb_samples=50, log=log, single=True)
@@ -444,7 +465,8 @@ def main(quick: bool = False, out_dir: Path = HERE, log=print, long: bool = Fals
         out["seconds"] = round(time.time() - t_start, 1)
         (out_dir / f"{name}.json").unlink(missing_ok=True)
         (out_dir / f"{name}.md").unlink(missing_ok=True)
-        out = merge(stored, out, labels)
+        out = add(stored, out, quick_cases() if quick or long else full_cases()) if add_cases \
+            else merge(stored, out, labels)
         name = name[:-len("_only")]
     out["seed"] = seed
     _save(out, out_dir, t_start, name)
@@ -493,6 +515,22 @@ def merge(stored: dict, new: dict, labels: tuple) -> dict:
          "seconds": new["seconds"]})
     stored["what"] += (f" [rerun on the same frames {stored['merged'][-1]['utc']} UTC and "
                        f"merged: {defs}]")
+    return stored
+
+
+def add(stored: dict, new: dict, order: list) -> dict:
+    """``stored`` with ``new``'s cases (a run of the same mode and estimators on cases it
+    lacked) added, in the mode's case ``order``; the run's time is kept in ``merged``."""
+    if stored["mode"] != new["mode"]:
+        raise SystemExit(f"add: the stored result is {stored['mode']}, this run {new['mode']}")
+    cases = {_key(c): c for c in stored["cases"] + new["cases"]}
+    stored["cases"] = [cases[k] for k in order if k in cases]
+    keys = [list(_key(c)) for c in new["cases"]]
+    stored.setdefault("merged", []).append(
+        {"cases": keys, "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+         "seconds": new["seconds"]})
+    stored["what"] += (f" [cases {', '.join('/'.join(str(v) for v in k) for k in keys)} run "
+                       f"{stored['merged'][-1]['utc']} UTC and added]")
     return stored
 
 
@@ -577,6 +615,17 @@ def rows(res: dict) -> list[dict]:
                          "value": float(max(floor)), "unit": "x floor", "target": "",
                          "note": f"{len(floor)} cases ({res['mode']}); the floor: a CoG with "
                                  f"its bias and response known exactly (crb.cog_covariance)"})
+        for lb in LONG_ESTIMATORS:                 # frozen flow: scored with tip, tilt and focus removed
+            frozen = [c["photons"][ph][lb] for c in res["cases"]
+                      if c["tilts"] in FROZEN and lb in c["photons"][ph]]
+            if frozen and lb != "cog":
+                rows.append({"name": f"accuracy {lb} worst ratio to cog, frozen flow, tip, tilt and "
+                                     f"focus removed, {ph} ph",
+                             "value": float(max(v["ttf_ratio_cog"] for v in frozen)),
+                             "unit": "x cog", "target": "<= 1",
+                             "note": f"{len(frozen)} cases ({res['mode']}); worst ratio to the CRB "
+                                     f"{max(v['ttf_ratio_crb'] for v in frozen):.3f}, raw "
+                                     f"{max(v['ratio_crb'] for v in frozen):.3f}"})
         for det in ("polar", "cartesian"):         # the best estimator of each case, worst case
             best = [min(v["ratio_crb"] for k, v in c["photons"][ph].items() if k != "cog")
                     for c in res["cases"] if c["tilts"] == "ar1" and c["detector"] == det]
@@ -635,6 +684,9 @@ if __name__ == "__main__":
                     help="comma-separated estimators (cog among them) run alone on the mode's "
                          "frames and merged into its stored json / md (and docs, quick), or "
                          "written as the first run where none is stored (another --seed)")
+    ap.add_argument("--add-cases", action="store_true",
+                    help="run the mode's cases the stored result lacks (all its estimators) "
+                         "and add them to it")
     ap.add_argument("--tables-only", action="store_true",
                     help="rewrite accuracy.md and docs/accuracy.md from accuracy.json, no run")
     ap.add_argument("--floors", action="store_true",
@@ -669,5 +721,6 @@ if __name__ == "__main__":
             results.write_text(json.dumps(allres, indent=2) + "\n")
     else:
         main(args.quick, long=args.long, jobs=args.jobs,
-             only=tuple(x for x in args.only.split(",") if x), seed=args.seed)
+             only=tuple(x for x in args.only.split(",") if x), seed=args.seed,
+             add_cases=args.add_cases)
     print((HERE / f"{result_name(args.long, args.seed)}.md").read_text())
