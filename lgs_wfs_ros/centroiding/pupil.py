@@ -535,7 +535,7 @@ class PupilCalibration:
         return self._spread
 
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
-              iterations: int = 6) -> np.ndarray:
+              iterations: int = 8) -> np.ndarray:
         """Light per node ``(K,)`` from unit-light projected means ``z (n, nb)`` of the
         subapertures ``ok (n,)``; ``start`` gives the first field fractions.
 
@@ -546,15 +546,24 @@ class PupilCalibration:
         ``(B + d B') x``, with ``B'`` the basis' derivative along e. Without that term the
         spots the field truncates pull the profile (docs/accuracy.md).
 
-        Each subaperture's mean tilt over the window moves its mean image along e without
-        saying anything about the profile, so it is left free (:meth:`_free_shift_terms`):
-        only its weighted sum along the altitude's pattern (``r`` from the launch) is held
-        at zero, which fixes the origin. ``d``, the field fractions and the shift directions
-        come from the previous iterate (``start`` first: the last refit's profile, so a
-        steady profile needs one solve; at most ``iterations``, stopping when they move by
-        less than ``PULL_TOL_PX``, ``FRACTION_TOL`` and ``DIRECTION_TOL``); ``d`` is applied
-        where it exceeds ``PULL_TOL_PX``, and kept within +-s (a spot almost out of its
-        field, whose ``kappa`` is large, is beyond a first-order model)."""
+        Each subaperture's mean tilt over the window ``mu`` moves its mean image along e
+        without saying anything about the profile, so it is left free
+        (:meth:`_free_shift_terms`): only its weighted sum along the altitude's pattern
+        (``r`` from the launch) is held at zero, which fixes the origin. The shifts are
+        carried by the first-order term ``mu B' x``; if its iterates have not settled after
+        ``MOVE_AFTER`` solves, a shift beyond the core's rms width (a window's mean tilt
+        under frozen flow reaches 1 px) moves the block's model instead: its basis is the
+        thin layers' spots ``mu / delta_s`` nodes further along (nodes are even in 1/h, so
+        each moves block s's spot by the same ``delta_s`` px, :meth:`_node_step_px`; within
+        2 % of the spots rendered moved), and the next iterate solves for what is left.
+        (With every shift carried by the first-order term about the block centre, the
+        iterates alternated between two profiles on such windows, docs/accuracy.md.) ``d``,
+        the field fractions, the shift directions and the moved shifts come from the
+        previous iterate (``start`` first: the last refit's profile, so a steady profile
+        needs one solve; at most ``iterations``, stopping when they move by less than
+        ``PULL_TOL_PX``, ``FRACTION_TOL``, ``DIRECTION_TOL`` and ``SHIFT_TOL_PX``); ``d`` is
+        applied where it exceeds ``PULL_TOL_PX``, and kept within +-s (a spot almost out of
+        its field, whose ``kappa`` is large, is beyond a first-order model)."""
         b, db = self.basis, self._dbasis
         k = b.shape[2]
         x = self.prior if start is None else start
@@ -568,58 +577,87 @@ class PupilCalibration:
         else:
             bo, dbo, zo = b[ok], db[ok], z[ok]
             cs0, cs1, r = self._colsum[ok], self._dcolsum[ok], self.layout.r_m[ok]
-        used = None
-        for _ in range(iterations):
-            d = self._pull(cs0 @ x, cs1 @ x)
-            c = (cs0 + d[:, None] * cs1) @ x / max(x.sum(), 1e-300)   # light inside the field
+        core = MOVE_CORES * self.sensor.core_fwhm_px / FWHM_PER_SIGMA   # px: beyond, move
+        node_px = self._node_step_px(r)                      # (m,) px a node step moves a spot
+        reach = node_px * k * MAX_NODE_SHIFT                 # px a model may move (nodes)
+        held = np.zeros(bo.shape[0])                         # the shifts the models are moved by
+        used, step = None, 0.0
+        for it in range(iterations):
+            mv = np.flatnonzero(held)
+            nodes = held[mv] / node_px[mv]
+            bm, dbm = _node_shifted(bo[mv], nodes), _node_shifted(dbo[mv], nodes)
+            c0, c1 = cs0 @ x, cs1 @ x
+            c0[mv], c1[mv] = _node_shifted(cs0[mv], nodes) @ x, _node_shifted(cs1[mv], nodes) @ x
+            d = self._pull(c0, c1)
+            c = (c0 + d * c1) / max(x.sum(), 1e-300)                  # light inside the field
             g = np.einsum("snk,k->sn", dbo, x)              # (m, nb) the shift's direction
-            if used is not None and (np.abs(d - used[0]).max() <= PULL_TOL_PX
+            g[mv] = np.einsum("snk,k->sn", dbm, x)
+            if used is not None and (step <= SHIFT_TOL_PX
+                                     and np.abs(d - used[0]).max() <= PULL_TOL_PX
                                      and np.abs(c - used[1]).max() <= FRACTION_TOL
                                      and _turned(g, used[2]) <= DIRECTION_TOL):
                 break                                        # what the last solve used
             used = d, c, g
             w = zo * c[:, None]                                                  # (m, nb)
-            gram_free, rhs_free = self._free_shift_terms(bo, dbo, d, g, w, r)
-            gram = base + self._moved_gram(bo, dbo, d) + gram_free
+            rows = np.flatnonzero((d != 0) | (held != 0))    # models that are not the basis
+            model = _row_models(bo, dbo, rows, d, mv, bm, dbm)
+            norm = np.sqrt(np.einsum("sn,sn->s", g, g))
+            live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+            u = np.where(live[:, None], g / np.where(live, norm, 1.0)[:, None], 0.0)
+            v = np.einsum("snk,sn->sk", bo, u)               # (m, K) each model along its u
+            v[rows] = np.einsum("snk,sn->sk", model, u[rows])
+            uw = np.einsum("sn,sn->s", u, w)
+            gram_free, rhs_free, pin = self._free_shift_terms(v, uw, np.where(live, norm, 0.0),
+                                                              r, held)
+            gram = base + _row_gram(bo, rows, model) + gram_free
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
-            rhs = np.einsum("snk,sn->k", bo, w) + _moved_sum(dbo, w, d) + rhs_free
+            rhs = (np.einsum("snk,sn->k", bo, w) + rhs_free
+                   + np.einsum("snk,sn->k", model - bo[rows], w[rows]))
             x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
             if x.sum() <= 0:
                 return self.prior.copy()
+            if it + 1 < MOVE_AFTER:                          # first-order iterates first
+                continue
+            mu = np.clip(held + _shift_steps(x, *pin), -MAX_SHIFT_PX, MAX_SHIFT_PX)
+            moved = np.where(((np.abs(mu) > core) | (held != 0)) & (np.abs(mu) <= reach),
+                             mu, 0.0)                        # once moved, moved
+            step, held = float(np.abs(moved - held).max(initial=0.0)), moved
         return x / x.sum()
 
-    @staticmethod
-    def _free_shift_terms(b: np.ndarray, db: np.ndarray, d: np.ndarray, g: np.ndarray,
-                          w: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(K, K)`` and ``(K,)``: what leaving each subaperture's shift along e free adds to
-        the normal matrix and right-hand side.
+    def _node_step_px(self, r: np.ndarray) -> np.ndarray:
+        """``(m,)`` px: how far one node step (even in 1/h) moves the spot of a block at
+        ``r (m,)`` m from the launch along its e, ``r cos z d(1/h)`` in pixels."""
+        step = abs(1.0 / self.nodes_m[0] - 1.0 / self.nodes_m[1])
+        return (np.asarray(r, float) * math.cos(math.radians(self.sensor.zenith_deg)) * step
+                / self.sensor.pixel_scale_rad)
 
-        Subaperture s's data ``w_s (nb,)`` is modelled as ``M_s x + mu_s g_s`` with ``M_s =
-        B_s + d_s B'_s`` (``b``, ``db``: ``(m, nb, K)``), ``g_s (nb,)`` the model's
-        derivative along e and ``mu_s`` its mean tilt (px), subject to ``sum_s r_s |g_s|^2
-        mu_s = 0`` (the tilts' information-weighted pattern along ``r e`` is zero: what
-        fixes the profile's altitude, docs/accuracy.md). Minimising over ``mu`` (variable
-        projection) leaves a quadratic in ``x``: each residual loses its component along
-        ``u_s = g_s/|g_s|`` (``- V^T V``, ``V_s = M_s^T u_s``) and the constraint gives it
-        back along the altitude's pattern (``+ Q Q^T / A``, ``Q = sum_s r_s |g_s| V_s``,
-        ``A = sum_s r_s^2 |g_s|^2``): two rank-``m`` products, no model copy."""
-        norm = np.sqrt(np.einsum("sn,sn->s", g, g))
-        live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
-        u = np.where(live[:, None], g / np.where(live, norm, 1.0)[:, None], 0.0)
-        v = np.einsum("snk,sn->sk", b, u)
-        moved = np.flatnonzero(d)                  # the pulled ones only: one pass fewer
-        if moved.size:
-            v[moved] += d[moved, None] * np.einsum("snk,sn->sk", db[moved], u[moved])
-        uw = np.einsum("sn,sn->s", u, w)
+    @staticmethod
+    def _free_shift_terms(v: np.ndarray, uw: np.ndarray, norm: np.ndarray, r: np.ndarray,
+                          held: np.ndarray) -> tuple:
+        """``(K, K)``, ``(K,)`` and what :func:`_shift_steps` reads: what leaving each
+        subaperture's shift along e free adds to the normal matrix and right-hand side.
+
+        Subaperture s's data ``w_s (nb,)`` is modelled as ``M_s x + nu_s u_s``, ``M_s`` its
+        model (``(nb, K)``: moved by the pull and the held shift), ``u_s`` the direction of
+        its derivative ``g_s`` along e (``norm (m,)``: ``|g_s|``, 0 where it has none) and
+        ``nu_s / |g_s|`` the shift beyond ``held (m,)`` px, subject to ``sum_s r_s |g_s|^2
+        mu_s = 0`` on the whole shifts ``mu`` (the tilts' information-weighted pattern along
+        ``r e`` is zero: what fixes the profile's altitude, docs/accuracy.md). Minimising
+        over ``nu`` (variable projection) leaves a quadratic in ``x``: each residual loses
+        its component along ``u_s`` (``- V^T V``, ``v (m, K)``: ``V_s = M_s^T u_s``; ``uw
+        (m,)``: ``u_s . w_s``) and the constraint gives it back along the altitude's pattern
+        (``+ Q Q^T / A``, ``Q = sum_s q_s V_s``, ``q_s = r_s |g_s|``, ``A = q^T q``, offset
+        by the held shifts' share ``q^T (|g| held)``): two rank-``m`` products."""
         q = r * norm
         a = max(float(q @ q), 1e-300)
+        offset = float(q @ (norm * held))
         qv = q @ v
         gram = np.outer(qv, qv) / a - v.T @ v
-        rhs = qv * (q @ uw) / a - v.T @ uw
-        return gram, rhs
+        rhs = qv * (q @ uw + offset) / a - v.T @ uw
+        return gram, rhs, (v, uw, q, a, offset, np.where(norm > 0, norm, np.inf))
 
     def _pull(self, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
         """``(m,)`` px: the normalisation's first-order pull ``-s^2 c'/c`` along e from the
@@ -629,23 +667,6 @@ class PupilCalibration:
         d = np.clip(d, -self.blur_px, self.blur_px)
         d[np.abs(d) <= PULL_TOL_PX] = 0.0
         return d
-
-    @staticmethod
-    def _moved_gram(b: np.ndarray, db: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """``(K, K)``: what moving each subaperture's model by ``d (m,)`` px along e adds to
-        the normal matrix, ``sum_s (B_s + d_s B'_s)^T (B_s + d_s B'_s) - B_s^T B_s =
-        sum_s d_s (C_s + C_s^T) + d_s^2 B'_s^T B'_s`` with ``C_s = B_s^T B'_s``, over the
-        subapertures that move (``b``, ``db``: ``(m, nb, K)``): two products, no model copy."""
-        k = b.shape[2]
-        moved = np.flatnonzero(d)
-        if moved.size == 0:
-            return np.zeros((k, k))
-        if moved.size < d.size:
-            b, db, d = b[moved], db[moved], d[moved]
-        flat = b.reshape(-1, k)
-        scaled = (db * d[:, None, None]).reshape(-1, k)
-        cross = flat.T @ scaled
-        return cross + cross.T + scaled.T @ scaled
 
     # -- what the profile implies -------------------------------------------------------
     @property
@@ -798,15 +819,54 @@ class PupilCalibration:
                 "harmonic_altitude_m": round(alt, 1), "altitude_drift_m": drift}
 
 
-def _moved_sum(db: np.ndarray, w: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``(K,)``: ``sum_s d_s B'_s^T w_s`` over the subapertures the pull moves (``d_s`` not
-    0; ``db (m, nb, K)``, ``w (m, nb)``): the moved models' share of the right-hand side,
-    without a pass over those that do not move (all of them on most pupils' steady
-    profiles)."""
-    moved = np.flatnonzero(d)
-    if moved.size == 0:
-        return np.zeros(db.shape[2])
-    return np.einsum("snk,sn->k", db[moved], w[moved] * d[moved, None])
+def _node_shifted(arr: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """``arr (m, ..., K)`` with each row's node axis read ``nodes (m,)`` nodes further on
+    (fractional: linear between nodes; zero beyond the last): the thin-layer spots of row s
+    moved by ``nodes_s`` node steps, i.e. by ``nodes_s * delta_s`` px along e."""
+    k = arr.shape[-1]
+    lo = np.floor(nodes).astype(int)
+    frac = nodes - lo
+    shape = (arr.shape[0],) + (1,) * (arr.ndim - 2) + (k,)
+    out = np.zeros(arr.shape)
+    for off, weight in ((0, 1.0 - frac), (1, frac)):
+        j = np.arange(k)[None, :] + (lo + off)[:, None]              # (m, K) columns read
+        inside = (j >= 0) & (j < k)
+        taken = np.take_along_axis(arr, np.clip(j, 0, k - 1).reshape(shape), axis=-1)
+        out += taken * (inside * weight[:, None]).reshape(shape)
+    return out
+
+
+def _row_models(b: np.ndarray, db: np.ndarray, rows: np.ndarray, d: np.ndarray,
+                moved: np.ndarray, b_moved: np.ndarray, db_moved: np.ndarray) -> np.ndarray:
+    """``(R, nb, K)``: the models ``B_s + d_s B'_s`` of ``rows (R,)`` (``b``, ``db``: ``(m,
+    nb, K)``; ``d (m,)`` px), with the basis of the blocks ``moved`` (a subset of ``rows``)
+    replaced by ``b_moved`` and ``db_moved``."""
+    bm, dbm = b[rows], db[rows]
+    if moved.size:
+        at = np.searchsorted(rows, moved)
+        bm[at], dbm[at] = b_moved, db_moved
+    return bm + d[rows, None, None] * dbm
+
+
+def _row_gram(b: np.ndarray, rows: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """``(K, K)``: what replacing the basis of ``rows`` by their ``model (R, nb, K)`` changes
+    in the normal matrix: two products over those rows (none on a steady pupil's
+    unmoved models)."""
+    k = b.shape[2]
+    if rows.size == 0:
+        return np.zeros((k, k))
+    old, new = b[rows].reshape(-1, k), model.reshape(-1, k)
+    return new.T @ new - old.T @ old
+
+
+def _shift_steps(x: np.ndarray, v: np.ndarray, uw: np.ndarray, q: np.ndarray, a: float,
+                 offset: float, norm: np.ndarray) -> np.ndarray:
+    """``(m,)`` px: each block's shift beyond the held one at the solved profile ``x (K,)``
+    (the variable projection's minimiser, :meth:`PupilCalibration._free_shift_terms`): its
+    residual along ``u_s``, ``uw_s - V_s x``, less the constraint's share along ``q``; 0
+    where the model has no derivative (``norm`` inf)."""
+    res = uw - v @ x
+    return (res - q * (q @ res + offset) / a) / norm
 
 
 def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
@@ -821,6 +881,11 @@ def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
 # The normalisation's pull below this (px) is not applied, and the solve stops once the pull
 # its last iterate implies is within this of the one it used (one solve a refit when steady).
 PULL_TOL_PX = 1e-3
+SHIFT_TOL_PX = 0.02      # nor do the shifts the model is moved by (an error e costs ~e^2)
+MAX_SHIFT_PX = 2.0       # the free shifts are kept within this
+MOVE_AFTER = 3           # first-order iterates that did not settle before a model moves
+MOVE_CORES = 1.0         # a shift beyond this many rms widths of the core moves the model
+MAX_NODE_SHIFT = 0.25    # a block whose move would run this fraction of the nodes stays unmoved
 FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
 DIRECTION_TOL = 1e-6     # nor do the subapertures' shift directions (1 - cosine)
 
