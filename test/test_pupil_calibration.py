@@ -665,6 +665,40 @@ def test_background_refit_renders_only_the_image_the_estimator_reads(monkeypatch
     live.pupil.wait()
 
 
+def test_background_refit_gives_ml_the_drift_marginals_it_reads():
+    """ml with pupil_async follows the drift from the drifted and the current reference's
+    marginals: a background refit makes both in its thread, so the frame that installs it
+    renders none (each a pass over the full pupil's spots), and reads what rendering them
+    on that frame gives."""
+    from lgs_wfs_ros.optics.model_spot import ProfileSpots
+    s = SMALL.replace(detector="polar")
+    n = geometry.layout(s).n_valid
+    _, _, sm = true_spots(s, "high")
+    rng = np.random.default_rng(3)
+    frames = [sm.images(rng.normal(0.0, 0.3, (n, 2)))[0] * 1000.0 for _ in range(5)]
+
+    def second_install(render_allowed: bool):
+        live = table.build("ml", s, {"pupil_period": 2, "pupil_async": True})
+        for f in frames[:4]:
+            live.centroid(f)
+            live.pupil.wait()
+        assert live.pupil.fits == 1 and live.pupil._job is not None   # the second: done, not in
+        if render_allowed:                           # as before: the install frame renders
+            clone = live.pupil._job.result()[0]
+            clone._ref_margs = None
+            return live.centroid(frames[4]), live
+
+        def no_marginals(*args, **kwargs):
+            raise AssertionError("the install frame rendered marginals")
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(ProfileSpots, "marginals_at", no_marginals)
+            return live.centroid(frames[4]), live          # installs the second refit
+    got, live = second_install(False)
+    assert live.pupil.fits == 2 and live._drift is not None and np.abs(live._drift).max() > 0
+    want, _ = second_install(True)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_background_refit_makes_the_networks_references_in_its_thread():
     """ann with pupil_async: the network's part of a refit (its filters from the new
     references, its reading of them, the straightened response) is made in the refit's

@@ -161,6 +161,7 @@ class PupilCalibration:
         self._drift_at = (0.0, 1.0)              # (frame light is predicted for, frames to light_drift's)
         self._drift_refs = None                  # (version, counts of light_drift's reference)
         self._drift_margs = None                 # (version, its marginals in counts)
+        self._ref_margs = None                   # (version, the reference's marginals in counts)
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
@@ -349,7 +350,8 @@ class PupilCalibration:
         if self.want_response:                               # a linearised CoG's
             clone.cog_response()
         if self.drift_marginals_only:                        # what _follow_drift reads
-            clone.drift_marginals()
+            if clone.drift_marginals() is not None:
+                clone.reference_marginals()
         else:
             clone.drift_counts()
         return clone, payload
@@ -472,7 +474,10 @@ class PupilCalibration:
         """``(n, 2, p)`` polar detector: :meth:`reference_counts`' column and row sums, from
         the spot model without the image (the same render path as :meth:`drift_marginals`,
         so that their difference is the drift alone)."""
-        return self.marginals_in_counts(self.spots().marginals_at(np.zeros((self.n, 2))))
+        if self._ref_margs is None or self._ref_margs[0] != self.version:    # cached per refit
+            self._ref_margs = (self.version, self.marginals_in_counts(
+                self.spots().marginals_at(np.zeros((self.n, 2)))))
+        return self._ref_margs[1]
 
     def _spots_of(self, light: np.ndarray) -> ProfileSpots:
         """Noise-free spots of every subaperture for node light ``light (K,)``."""
@@ -845,7 +850,9 @@ def _row_models(b: np.ndarray, db: np.ndarray, rows: np.ndarray, d: np.ndarray,
     if moved.size:
         at = np.searchsorted(rows, moved)
         bm[at], dbm[at] = b_moved, db_moved
-    return bm + d[rows, None, None] * dbm
+    dbm *= d[rows, None, None]
+    bm += dbm
+    return bm
 
 
 def _row_gram(b: np.ndarray, rows: np.ndarray, model: np.ndarray) -> np.ndarray:
@@ -925,7 +932,7 @@ def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
               "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum",
               "_gram", "_rough", "_spread", "light_drift", "_drift_at", "_drift_refs",
-              "_drift_margs")
+              "_drift_margs", "_ref_margs")
 
 # The CoG's response (cog_response): scanned over +-1.4 px per block axis (3 sigma of the
 # shifts a closed loop leaves, 0.46 px rms per axis; a corner, rotated to the detector's
