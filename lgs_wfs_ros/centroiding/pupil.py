@@ -540,7 +540,7 @@ class PupilCalibration:
         return self._spread
 
     def solve(self, z: np.ndarray, ok: np.ndarray, start: np.ndarray | None = None,
-              iterations: int = 8) -> np.ndarray:
+              iterations: int = 6) -> np.ndarray:
         """Light per node ``(K,)`` from unit-light projected means ``z (n, nb)`` of the
         subapertures ``ok (n,)``; ``start`` gives the first field fractions.
 
@@ -555,9 +555,11 @@ class PupilCalibration:
         without saying anything about the profile, so it is left free
         (:meth:`_free_shift_terms`): only its weighted sum along the altitude's pattern
         (``r`` from the launch) is held at zero, which fixes the origin. The shifts are
-        carried by the first-order term ``mu B' x``; if its iterates have not settled after
-        ``MOVE_AFTER`` solves, a shift beyond the core's rms width (a window's mean tilt
-        under frozen flow reaches 1 px) moves the block's model instead: its basis is the
+        carried by the first-order term ``mu B' x``; if from the ``MOVE_AFTER``-th solve on the
+        profile still moves by more than ``PROFILE_TOL`` of its largest node and by more than
+        ``STALL`` times the solve before's move (the iterates do not settle), a shift beyond
+        the core's rms width (a window's mean tilt under frozen flow reaches 1 px) moves the
+        block's model instead from then on: its basis is the
         thin layers' spots ``mu / delta_s`` nodes further along (nodes are even in 1/h, so
         each moves block s's spot by the same ``delta_s`` px, :meth:`_node_step_px`; within
         2 % of the spots rendered moved), and the next iterate solves for what is left.
@@ -586,7 +588,7 @@ class PupilCalibration:
         node_px = self._node_step_px(r)                      # (m,) px a node step moves a spot
         reach = node_px * k * MAX_NODE_SHIFT                 # px a model may move (nodes)
         held = np.zeros(bo.shape[0])                         # the shifts the models are moved by
-        used, step = None, 0.0
+        used, step, moving, change = None, 0.0, False, np.inf
         for it in range(iterations):
             mv = np.flatnonzero(held)
             nodes = held[mv] / node_px[mv]
@@ -621,10 +623,13 @@ class PupilCalibration:
             low = np.tril(chol)
             rhs = (np.einsum("snk,sn->k", bo, w) + rhs_free
                    + np.einsum("snk,sn->k", model - bo[rows], w[rows]))
-            x, _ = nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)
+            last, x = x, nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)[0]
             if x.sum() <= 0:
                 return self.prior.copy()
-            if it + 1 < MOVE_AFTER:                          # first-order iterates first
+            change, before = _changed(x, last), change
+            moving = moving or (it + 1 >= MOVE_AFTER and change > PROFILE_TOL
+                                and change > STALL * before)         # not settling
+            if not moving:                                   # first-order iterates settle
                 continue
             mu = np.clip(held + _shift_steps(x, *pin), -MAX_SHIFT_PX, MAX_SHIFT_PX)
             moved = np.where(((np.abs(mu) > core) | (held != 0)) & (np.abs(mu) <= reach),
@@ -876,6 +881,13 @@ def _shift_steps(x: np.ndarray, v: np.ndarray, uw: np.ndarray, q: np.ndarray, a:
     return (res - q * (q @ res + offset) / a) / norm
 
 
+def _changed(x: np.ndarray, last: np.ndarray) -> float:
+    """The largest change of a node's share of the light between two profiles ``(K,)``, as
+    a fraction of the largest share."""
+    a, b = x / max(x.sum(), 1e-300), last / max(last.sum(), 1e-300)
+    return float(np.abs(a - b).max() / max(b.max(), 1e-300))
+
+
 def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
     """The largest change of direction (1 - cosine) between two sets of shift directions
     ``(m, nb)``, per row."""
@@ -890,7 +902,9 @@ def _turned(g: np.ndarray, g_used: np.ndarray) -> float:
 PULL_TOL_PX = 1e-3
 SHIFT_TOL_PX = 0.02      # nor do the shifts the model is moved by (an error e costs ~e^2)
 MAX_SHIFT_PX = 2.0       # the free shifts are kept within this
-MOVE_AFTER = 3           # first-order iterates that did not settle before a model moves
+MOVE_AFTER = 3           # first-order solves before a model may move, if the profile
+PROFILE_TOL = 0.01       # still changes by more than this (of its largest node) a solve,
+STALL = 0.8              # and by more than this fraction of the solve before's change
 MOVE_CORES = 1.0         # a shift beyond this many rms widths of the core moves the model
 MAX_NODE_SHIFT = 0.25    # a block whose move would run this fraction of the nodes stays unmoved
 FRACTION_TOL = 1e-4      # nor does the light inside each field (a fraction of the whole)
