@@ -559,10 +559,10 @@ class PupilCalibration:
         profile still moves by more than ``PROFILE_TOL`` of its largest node and by more than
         ``STALL`` times the solve before's move (the iterates do not settle), a shift beyond
         the core's rms width (a window's mean tilt under frozen flow reaches 1 px) moves the
-        block's model instead from then on: its basis is the
-        thin layers' spots ``mu / delta_s`` nodes further along (nodes are even in 1/h, so
-        each moves block s's spot by the same ``delta_s`` px, :meth:`_node_step_px`; within
-        2 % of the spots rendered moved), and the next iterate solves for what is left.
+        block's model instead from then on: its basis is the thin layers' spots ``mu /
+        delta_s`` nodes further along (nodes are even in 1/h, so each moves block s's spot
+        by the same ``delta_s`` px, :meth:`_node_step_px`; within 2 % of the spots rendered
+        moved), and the next iterate solves for what is left.
         (With every shift carried by the first-order term about the block centre, the
         iterates alternated between two profiles on such windows, docs/accuracy.md.) ``d``,
         the field fractions, the shift directions and the moved shifts come from the
@@ -607,7 +607,8 @@ class PupilCalibration:
             used = d, c, g
             w = zo * c[:, None]                                                  # (m, nb)
             rows = np.flatnonzero((d != 0) | (held != 0))    # models that are not the basis
-            model = _row_models(bo, dbo, rows, d, mv, bm, dbm)
+            old = bo[rows]
+            model = _row_models(old, dbo, rows, d, mv, bm, dbm)
             norm = np.sqrt(np.einsum("sn,sn->s", g, g))
             live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
             u = np.where(live[:, None], g / np.where(live, norm, 1.0)[:, None], 0.0)
@@ -616,13 +617,13 @@ class PupilCalibration:
             uw = np.einsum("sn,sn->s", u, w)
             gram_free, rhs_free, pin = self._free_shift_terms(v, uw, np.where(live, norm, 0.0),
                                                               r, held)
-            gram = base + _row_gram(bo, rows, model) + gram_free
+            gram = base + _row_gram(old, model) + gram_free
             lam = self.smoothing * np.trace(gram) / k
             chol, _ = cho_factor(gram + lam * self._rough + 1e-12 * np.trace(gram) * np.eye(k),
                                  lower=True)
             low = np.tril(chol)
             rhs = (np.einsum("snk,sn->k", bo, w) + rhs_free
-                   + np.einsum("snk,sn->k", model - bo[rows], w[rows]))
+                   + np.einsum("snk,sn->k", model - old, w[rows]))
             last, x = x, nnls(low.T, solve_triangular(low, rhs, lower=True), maxiter=50 * k)[0]
             if x.sum() <= 0:
                 return self.prior.copy()
@@ -846,12 +847,12 @@ def _node_shifted(arr: np.ndarray, nodes: np.ndarray) -> np.ndarray:
     return out
 
 
-def _row_models(b: np.ndarray, db: np.ndarray, rows: np.ndarray, d: np.ndarray,
+def _row_models(b_rows: np.ndarray, db: np.ndarray, rows: np.ndarray, d: np.ndarray,
                 moved: np.ndarray, b_moved: np.ndarray, db_moved: np.ndarray) -> np.ndarray:
-    """``(R, nb, K)``: the models ``B_s + d_s B'_s`` of ``rows (R,)`` (``b``, ``db``: ``(m,
-    nb, K)``; ``d (m,)`` px), with the basis of the blocks ``moved`` (a subset of ``rows``)
-    replaced by ``b_moved`` and ``db_moved``."""
-    bm, dbm = b[rows], db[rows]
+    """``(R, nb, K)``: the models ``B_s + d_s B'_s`` of ``rows (R,)`` (``b_rows (R, nb, K)``
+    their basis, ``db (m, nb, K)`` every block's derivative, ``d (m,)`` px), with the basis
+    of the blocks ``moved`` (a subset of ``rows``) replaced by ``b_moved`` and ``db_moved``."""
+    bm, dbm = b_rows.copy(), db[rows]
     if moved.size:
         at = np.searchsorted(rows, moved)
         bm[at], dbm[at] = b_moved, db_moved
@@ -860,14 +861,14 @@ def _row_models(b: np.ndarray, db: np.ndarray, rows: np.ndarray, d: np.ndarray,
     return bm
 
 
-def _row_gram(b: np.ndarray, rows: np.ndarray, model: np.ndarray) -> np.ndarray:
-    """``(K, K)``: what replacing the basis of ``rows`` by their ``model (R, nb, K)`` changes
-    in the normal matrix: two products over those rows (none on a steady pupil's
-    unmoved models)."""
-    k = b.shape[2]
-    if rows.size == 0:
+def _row_gram(b_rows: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """``(K, K)``: what replacing the basis ``b_rows (R, nb, K)`` of some blocks by their
+    ``model`` (the same shape) changes in the normal matrix: two products over those rows
+    (none on a steady pupil's unmoved models)."""
+    k = b_rows.shape[2]
+    if b_rows.shape[0] == 0:
         return np.zeros((k, k))
-    old, new = b[rows].reshape(-1, k), model.reshape(-1, k)
+    old, new = b_rows.reshape(-1, k), model.reshape(-1, k)
     return new.T @ new - old.T @ old
 
 
