@@ -437,8 +437,19 @@ class ANN(Centroider):
     def _row_cog(self, rows: np.ndarray) -> np.ndarray:
         """``(n,)`` CoG of the row sums ``rows (n, p)``, px from the block centre (block y of
         a marginals model; NaN where a row sum has no light)."""
+        return self._row_moments(rows)[0]
+
+    def _row_moments(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cog (n,), total (n,))`` float64 of the row sums ``rows (n, p)``: their CoG, px
+        from the block centre (NaN where a row sum has no light), and their totals; one
+        ``(n, p) @ (p, 2)`` product in the rows' precision (float32 sums of counts are exact
+        to 2^24)."""
+        if self.__dict__.get("_moment_cols") is None or self._moment_cols.dtype != rows.dtype:
+            self._moment_cols = np.stack([np.arange(self.p) - self.centre, np.ones(self.p)],
+                                         axis=1).astype(rows.dtype)
+        m = np.asarray(rows @ self._moment_cols, dtype=np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return rows @ (np.arange(self.p) - self.centre) / rows.sum(axis=1, dtype=np.float64)
+            return m[:, 0] / m[:, 1], m[:, 1]
 
     def _reading(self, stack: np.ndarray, straight: bool = False) -> np.ndarray:
         """``(n, 2)`` raw readings, block axes, px, of float counts ``stack (n, p, p)``,
@@ -625,10 +636,9 @@ class ANN(Centroider):
         if refit:
             self._install_reference()
         out = self._marginals_out(np.ascontiguousarray(marg[:, 0]))
-        total = marg[:, 1].sum(axis=1, dtype=np.float64)
+        across, total = self._row_moments(marg[:, 1])
         ok = np.isfinite(total) & (total > 0)
-        out = np.stack([self._straight(out[:, 0] * self.meta["output_scale"]),
-                        self._row_cog(marg[:, 1])], axis=1)
+        out = np.stack([self._straight(out[:, 0] * self.meta["output_scale"]), across], axis=1)
         return self.finish(self._debiased(out), ok)
 
     def _centroid_bins(self, raw: np.ndarray) -> np.ndarray:
