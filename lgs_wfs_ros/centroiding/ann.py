@@ -207,10 +207,11 @@ class ANN(Centroider):
         self._sky = None                 # the calibrated profile against the model's (domain.ProfileCheck)
         self._sky_refits = [0, 0]        # profiles checked (each install), and found outside
         if self.pupil is not None:
-            if self._bins is not None:     # the solve's CoG response, off the frame path too
-                self.pupil.want_response = True
             if self.pupil.asynchronous:    # the network's part of a refit too
                 self.pupil.prepare = self._prepare_reference
+                self.pupil.reads = ("drift_counts",)
+            if self._bins is not None:     # the solve's CoG response, off the frame path too
+                self.pupil.reads += ("cog_response",)
             self._install_reference()
             if self._refit is None:                     # the reference's code, one row each
                 _check_width(inputs[self.cond[0]], self.cond[1].shape[1], "conditioning input", self.n)

@@ -59,7 +59,7 @@ class CoG(Centroider):
             self.pupil = pupil_cal.from_options(sensor, options, self.background)
             self._bias = self.pupil.cog_bias()
             if options.get("linearize", False):
-                self.pupil.want_response = True
+                self.pupil.reads += ("cog_response",)
                 self._response = self.pupil.cog_response()
         x, y = pixel_coords(self.p, self.centre)
         self._xy = np.stack([x, y], axis=1)                   # (p*p, 2)
@@ -164,8 +164,13 @@ class TabledCoG(CoG):
     payload`` (a dict with the calibration's ``version``; run in the refit thread when
     ``pupil_async``) and ``_install(payload)``, and call :meth:`_start_tables` once built."""
 
+    #: what the frame path reads of a refit beside the tables (``PupilCalibration.reads``):
+    #: the drifted reference, to follow the drift between refits
+    refit_reads = ("drift_counts",)
+
     def _start_tables(self) -> None:
         self.pupil.prepare = self._prepare
+        self.pupil.reads = self.refit_reads
         self._install(self._prepare(self.pupil))
 
     def _refresh(self) -> None:

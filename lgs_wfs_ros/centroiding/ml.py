@@ -114,6 +114,7 @@ class ML(TabledCoG):
     """
 
     name = "ml"
+    refit_reads = ("drift_marginal_pair",)      # _follow_drift_marginals reads no image
     _public = ("background", "step_px", "extent_px", *pupil_cal.OPTION_DEFAULTS)
     _allowed = (*_public, "bias")            # CoG's, which this sets to "pupil" itself
 
@@ -139,7 +140,6 @@ class ML(TabledCoG):
         self.options.pop("bias", None)
         self.step, self.extent = step, extent
         self._version = None
-        self.pupil.drift_marginals_only = True      # _follow_drift_marginals reads no image
         self._start_tables()
         kernels.warm_up()
 
@@ -164,11 +164,11 @@ class ML(TabledCoG):
         one's (:meth:`.PupilCalibration.reference_marginals`, the same render path: its
         tables' wider field, cropped, moved the high layer's ratio to the bound by +0.0014),
         without rendering either image."""
-        drifted = self.pupil.drift_marginals()
-        if drifted is None:
+        pair = self.pupil.drift_marginal_pair()
+        if pair is None:
             self._drift = None
             return
-        ref = self.pupil.reference_marginals()
+        drifted, ref = pair
         with np.errstate(divide="ignore", invalid="ignore"):
             moved = self._marginals_reading(drifted) - self._marginals_reading(ref)
         self._drift = np.nan_to_num(moved, nan=0.0, posinf=0.0, neginf=0.0)

@@ -109,8 +109,10 @@ class PupilCalibration:
         self.trend = flag("pupil_trend", trend)
         self.lag = number("pupil_async_lag", lag, minimum=0, integer=True)
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
-        self.want_response = False   # a background refit also fits cog_response (set by cog)
-        self.drift_marginals_only = False    # it prepares drift_marginals, not drift_counts (ml)
+        #: what the estimator's frame path reads of a refit beside ``prepare``'s payload: the
+        #: names of this class's cached methods, which a background refit calls after
+        #: ``prepare`` (off the frame path); an estimator declares its own
+        self.reads = ("reference_image", "cog_bias", "drift_counts")
         self.payload = None
         self._pool = None
         self._job = None
@@ -338,22 +340,12 @@ class PupilCalibration:
         self._job = self._pool.submit(self._work, clone, snap)
 
     def _work(self, clone, snap):
+        """A background refit: the fit, ``prepare``'s payload, then what ``reads`` names (and
+        the CoG bias the altitude tracker reads), all cached on ``clone``."""
         clone._fit(snap, snap[5])
-        payload = None
-        if self.prepare is not None:                         # it renders what it needs
-            payload = self.prepare(clone)
-        else:
-            clone.reference_image()      # here, not on a frame; the image alone: cog and corr
-                                         # read no derivative (four renders fewer)
-        if self.prepare is None or self.altitude_s > 0:      # the CoG bias, the tracker's
-            clone.cog_bias()
-        if self.want_response:                               # a linearised CoG's
-            clone.cog_response()
-        if self.drift_marginals_only:                        # what _follow_drift reads
-            if clone.drift_marginals() is not None:
-                clone.reference_marginals()
-        else:
-            clone.drift_counts()
+        payload = None if self.prepare is None else self.prepare(clone)
+        for name in self.reads + (("cog_bias",) if self.altitude_s > 0 else ()):
+            getattr(clone, name)()
         return clone, payload
 
     def _poll(self) -> bool:
@@ -469,6 +461,13 @@ class PupilCalibration:
             self._drift_margs = (self.version,
                                  self.marginals_in_counts(ps.marginals_at(np.zeros((self.n, 2)))))
         return self._drift_margs[1]
+
+    def drift_marginal_pair(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(drift_marginals(), reference_marginals())``, both ``(n, 2, p)``: what ``ml``
+        reads to follow the drift, or None without a drift (the reference's then not
+        rendered)."""
+        drifted = self.drift_marginals()
+        return None if drifted is None else (drifted, self.reference_marginals())
 
     def reference_marginals(self) -> np.ndarray:
         """``(n, 2, p)`` polar detector: :meth:`reference_counts`' column and row sums, from
@@ -726,7 +725,7 @@ class PupilCalibration:
         ``+-COG_RESPONSE_EXTENT_PX`` (block axes; :class:`.linearize.ResponseMap`): its
         value at 0 is :meth:`cog_bias`, its slope the gain the field's edge takes (a spot
         truncated by the field reads less than its shift). Cached per refit; a background
-        refit fits it off the frame path when ``want_response``.
+        refit fits it off the frame path when ``reads`` names it.
 
         On a polar detector a block's spot is the product of a function of block x and one
         of block y, and so is the field: the CoG along x depends on the shift along x
