@@ -489,8 +489,7 @@ def merge(stored: dict, new: dict, labels: tuple) -> dict:
     """``stored`` with ``labels``' scores and CPU times replaced (or added) by ``new``'s, a
     run of the same mode on the same frames: every case's CRB and cog scores must agree to
     1e-9 (the frames are seeded), or this refuses. The run's time is kept in ``merged``."""
-    if stored["mode"] != new["mode"]:
-        raise SystemExit(f"merge: the stored result is {stored['mode']}, this run {new['mode']}")
+    _same_mode(stored, new, "merge")
     for part in ("cases", "table3"):
         fresh = {_key(c): c for c in new[part]}
         if set(fresh) != {_key(c) for c in stored[part]}:
@@ -510,27 +509,33 @@ def merge(stored: dict, new: dict, labels: tuple) -> dict:
                 c["photons"][ph] = {lb: row[lb] for lb in ESTIMATORS if lb in row}
             c["cpu_ms"].update({lb: f["cpu_ms"][lb] for lb in labels if lb in f["cpu_ms"]})
     defs = "; ".join(f"{lb} = {ESTIMATORS[lb][0]} {ESTIMATORS[lb][1] or ''}" for lb in labels)
-    stored.setdefault("merged", []).append(
-        {"labels": list(labels), "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-         "seconds": new["seconds"]})
-    stored["what"] += (f" [rerun on the same frames {stored['merged'][-1]['utc']} UTC and "
-                       f"merged: {defs}]")
-    return stored
+    return _logged(stored, new, {"labels": list(labels)},
+                   "rerun on the same frames {utc} UTC and merged: " + defs)
 
 
 def add(stored: dict, new: dict, order: list) -> dict:
     """``stored`` with ``new``'s cases (a run of the same mode and estimators on cases it
     lacked) added, in the mode's case ``order``; the run's time is kept in ``merged``."""
-    if stored["mode"] != new["mode"]:
-        raise SystemExit(f"add: the stored result is {stored['mode']}, this run {new['mode']}")
+    _same_mode(stored, new, "add")
     cases = {_key(c): c for c in stored["cases"] + new["cases"]}
     stored["cases"] = [cases[k] for k in order if k in cases]
     keys = [list(_key(c)) for c in new["cases"]]
-    stored.setdefault("merged", []).append(
-        {"cases": keys, "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-         "seconds": new["seconds"]})
-    stored["what"] += (f" [cases {', '.join('/'.join(str(v) for v in k) for k in keys)} run "
-                       f"{stored['merged'][-1]['utc']} UTC and added]")
+    return _logged(stored, new, {"cases": keys}, "cases " + ", ".join(
+        "/".join(str(v) for v in k) for k in keys) + " run {utc} UTC and added")
+
+
+def _same_mode(stored: dict, new: dict, verb: str) -> None:
+    """Refuse to combine runs of different modes (quick, full, long)."""
+    if stored["mode"] != new["mode"]:
+        raise SystemExit(f"{verb}: the stored result is {stored['mode']}, this run {new['mode']}")
+
+
+def _logged(stored: dict, new: dict, entry: dict, text: str) -> dict:
+    """``stored`` with ``entry`` (plus the time now and ``new``'s run time) appended to its
+    ``merged`` log and ``text`` (``{utc}`` filled in) to its ``what``."""
+    utc = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    stored.setdefault("merged", []).append({**entry, "utc": utc, "seconds": new["seconds"]})
+    stored["what"] += " [" + text.replace("{utc}", utc) + "]"
     return stored
 
 
