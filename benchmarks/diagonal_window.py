@@ -21,6 +21,7 @@ left the network worse everywhere.
     python benchmarks/diagonal_window.py check
     python benchmarks/diagonal_window.py scratch W SPOTS EPOCHS OUT.pt
     python benchmarks/diagonal_window.py train W SPOTS EPOCHS OUT.pt      (from the shipped weights)
+    python benchmarks/diagonal_window.py scratch-diag W SPOTS EPOCHS OUT.pt   (diagonal blocks only)
     python benchmarks/diagonal_window.py validate 4000 NAME:OUT.pt:W ...
 
 Not part of benchmarks/run.py (needs torch; about 25 min a training on one core).
@@ -69,21 +70,28 @@ def reduce(e, counts, ref, polar, W):
     return marg.astype(np.float32), (refm / np.where(tot > 0, tot, np.inf)).astype(np.float32), along
 
 
-def batch(rng, m, det, W):
+def near_diagonal(rng, m):
+    """``(m, 2)`` unit vectors within 22.5 deg of a pixel diagonal (uniform in angle)."""
+    ang = np.pi / 4 + np.pi / 2 * rng.integers(0, 4, size=m) + rng.uniform(-np.pi / 8, np.pi / 8, size=m)
+    return np.stack([np.cos(ang), np.sin(ang)], axis=1)
+
+
+def batch(rng, m, det, W, diag=False):
     r = rng.uniform(*SPEC.radius_m, size=m)
-    e = np.tile([1.0, 0.0], (m, 1)) if det == "polar" else refdata.any_angle(rng, m)
+    e = np.tile([1.0, 0.0], (m, 1)) if det == "polar" else \
+        near_diagonal(rng, m) if diag else refdata.any_angle(rng, m)
     t, ref, ph, counts = refdata._spots(rng, SPEC, Sensor(), r, e)
     marg, refm, along = reduce(e, counts, ref, det == "polar", W)
     return refdata.MarginalPairs(marg, refm, (t * along).sum(axis=1, keepdims=True).astype(np.float32), r, ph)
 
 
-def generate(n, seed, W, dets=REC.detectors):
+def generate(n, seed, W, dets=REC.detectors, diag=False):
     parts = []
     for det, count in refdata.split(n, dets).items():
         done, kb = 0, 0
         while done < count:
             m = min(4096, count - done)
-            parts.append(batch(np.random.default_rng([seed, kb, *refdata.STREAMS[det]]), m, det, W))
+            parts.append(batch(np.random.default_rng([seed, kb, *refdata.STREAMS[det]]), m, det, W, diag))
             done, kb = done + m, kb + 1
     return refdata.MarginalPairs(*[np.concatenate([getattr(q, f) for q in parts]) for f in ("marg", "refs", "y", "r_m", "photons")])
 
@@ -121,14 +129,15 @@ def fisher_lit(pairs):
     return pairs.marg.sum(axis=1, dtype=np.float64) * np.where(r > 0, d ** 2 / (r + 1e-4), 0.0).sum(axis=1)
 
 
-def finetune(W, samples, epochs, out, lr=5e-4, seed=116, scratch=False):
+def finetune(W, samples, epochs, out, lr=5e-4, seed=116, scratch=False, diag=False):
     torch.set_num_threads(1)
     hypertrain.fisher = fisher_lit          # the loss weights of fit (this process only)
     net, spec = load_net(SHIPPED)
     if scratch:
         net = hypertrain._torch_module(spec)
     t0 = time.time()
-    data, mon = generate(samples, seed, W), generate(20000, seed + 1000, W)
+    dets = ("cartesian",) if diag else REC.detectors
+    data, mon = generate(samples, seed, W, dets, diag), generate(20000, seed + 1000, W, dets, diag)
     print(f"W {W}: data {time.time() - t0:.0f} s; before: monitor mae {hypertrain._mae(net, hypertrain._tensors(mon)):.5f}", flush=True)
     tr, mt = hypertrain._tensors(data), hypertrain._tensors(mon)
     wt = hypertrain.loss_weights(data, spec.weight_power)
@@ -176,6 +185,9 @@ if __name__ == "__main__":
         finetune(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5])
     elif cmd == "scratch":
         finetune(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], lr=2e-3, seed=216, scratch=True)
+    elif cmd == "scratch-diag":     # cartesian blocks within 22.5 deg of a diagonal only
+        finetune(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], lr=2e-3, seed=216,
+                 scratch=True, diag=True)
     elif cmd == "validate":
         n = int(sys.argv[2])
         models = [("shipped", SHIPPED, 16)] + [tuple(a.split(":")) for a in sys.argv[3:]]
