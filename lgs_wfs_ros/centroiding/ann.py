@@ -208,8 +208,7 @@ class ANN(Centroider):
         self._sky_refits = [0, 0]        # profiles checked (each install), and found outside
         if self.pupil is not None:
             if self.pupil.asynchronous:    # the network's part of a refit too
-                self.pupil.prepare = self._prepare_reference
-                self.pupil.reads = ("drift_counts",)
+                self.pupil.delegate(self._prepare_reference, ("drift_counts",))
             if self._bins is not None:     # the solve's CoG response, off the frame path too
                 self.pupil.reads += ("cog_response",)
             self._install_reference()

@@ -240,8 +240,7 @@ class CMF(Centroider):
             self.pupil = pupil_cal.from_options(sensor, o, self.background)
             self._install_pupil()
             if self.pupil.asynchronous:      # the filter and its response built off the frame path
-                self.pupil.prepare = self._prepare_pupil
-                self.pupil.reads = ("drift_counts",)
+                self.pupil.delegate(self._prepare_pupil, ("drift_counts",))
         if self.linearize and self._image_at is not None:
             self.calibrate_response()        # at construction, not on a live node's first frame
         if self.weighting == "model" and self.ref.images is not None \

@@ -169,8 +169,7 @@ class TabledCoG(CoG):
     refit_reads = ("drift_counts",)
 
     def _start_tables(self) -> None:
-        self.pupil.prepare = self._prepare
-        self.pupil.reads = self.refit_reads
+        self.pupil.delegate(self._prepare, self.refit_reads)
         self._install(self._prepare(self.pupil))
 
     def _refresh(self) -> None:

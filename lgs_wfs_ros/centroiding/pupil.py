@@ -111,7 +111,8 @@ class PupilCalibration:
         self.prepare = None          # optional callable(calibration) -> payload, run by _work
         #: what the estimator's frame path reads of a refit beside ``prepare``'s payload: the
         #: names of this class's cached methods, which a background refit calls after
-        #: ``prepare`` (off the frame path); an estimator declares its own
+        #: ``prepare`` (off the frame path); an estimator with its own tables declares both
+        #: with :meth:`delegate`
         self.reads = ("reference_image", "cog_bias", "drift_counts")
         self.payload = None
         self._pool = None
@@ -338,6 +339,12 @@ class PupilCalibration:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pupil-refit")
         self._job = self._pool.submit(self._work, clone, snap)
+
+    def delegate(self, prepare, reads: tuple) -> None:
+        """Hand a background refit ``prepare(calibration) -> payload`` (the estimator's own
+        tables, built in the refit's thread) and the cached methods ``reads`` its frame path
+        reads beside them (see ``reads``)."""
+        self.prepare, self.reads = prepare, tuple(reads)
 
     def _work(self, clone, snap):
         """A background refit: the fit, ``prepare``'s payload, then what ``reads`` names (and
