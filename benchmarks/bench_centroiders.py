@@ -17,8 +17,8 @@ Refits: the CPU of one inline (``cmf`` cartesian, ``ml`` polar; on a static prof
 the simulator's evolving one, whose fit iterates more), and whether ``ml`` with its
 refits in a thread, one period late, keeps up with frames offered at 700 Hz (wall time:
 the rate the frames went through, the frames over 5 ms, the process's CPU in cores), and
-how often ``cmf``'s refits, in a thread and installed when ready, land on a live
-cartesian node (refits installed a period: 1 when they keep up with the period).
+how often ``cmf``'s and ``corr``'s refits, in a thread and installed when ready, land on a
+live cartesian node (refits installed a period: 1 when they keep up with the period).
 
 Run: ``python benchmarks/bench_centroiders.py [--quick]``.
 """
@@ -385,6 +385,8 @@ def run(quick: bool = False) -> list[dict]:
                             "ml live, refits in a thread one period late")
     results += _live_refits("cmf", sensor, live_s, 0,
                             "cmf live (cartesian), refits in a thread, each installed when ready")
+    results += _live_refits("corr", sensor, live_s, 0,
+                            "corr live (cartesian), refits in a thread, each installed when ready")
 
     with tempfile.TemporaryDirectory() as tmp:
         path = _mlp(Path(tmp) / "mlp.onnx")

@@ -35,6 +35,25 @@ def test_noise_free_shift_within_002px(sigma, length, peak):
     np.testing.assert_allclose(c.centroid(image_at(np.zeros((N, 2)))), 0, atol=1e-9)
 
 
+@pytest.mark.parametrize("peak", ["gauss", "parabola"])
+def test_drift_reading_is_the_whole_maps_reading(peak):
+    """The reading a refit's drift is followed with (the 3 x 3 lags around zero summed
+    directly, the whole maps where their centre is not the largest) is the FFT maps' reading
+    of the same noise-free spots: moved less than half a pixel, more (the maps' path), and
+    the reference itself (zero)."""
+    image_at = image_at_factory(1.0, 2.5)
+    c = make_centroider("corr", SENSOR, reference="static", peak=peak)
+    c.set_reference(image_at(np.zeros((N, 2))))
+    rng = np.random.default_rng(4)
+    shift = rng.uniform(-0.4, 0.4, (N, 2))
+    shift[::7] = rng.uniform(0.7, 1.6, (len(shift[::7]), 2)) * rng.choice([-1, 1], (len(shift[::7]), 2))
+    for s in (shift, np.zeros((N, 2))):
+        counts = image_at(s)
+        want = c._map_reading(counts + c.background)
+        np.testing.assert_allclose(c._drift_reading(counts), want, atol=1e-10)
+    assert np.abs(want).max() < 1e-9 and np.abs(c._map_reading(image_at(shift))).max() > 1.0
+
+
 def test_peak_fit_is_exact_for_quadratics_and_gaussians():
     y, x = np.indices((32, 32), dtype=float)
     peaks = np.array([[16.3, 15.8], [10.0, 20.45], [3.49, 28.5]])

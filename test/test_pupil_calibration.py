@@ -668,6 +668,37 @@ def test_background_refit_renders_only_the_image_the_estimator_reads(monkeypatch
     live.pupil.wait()
 
 
+def test_background_refit_makes_the_correlations_references_in_its_thread():
+    """corr with pupil_async on integer frames (its compiled pass): the new references'
+    validity, the pass's rows and the drift's reading are made in the refit's thread; the
+    frame that installs the second refit (the first with a drift to follow) reads no
+    reference, computes no correlation map and no reference FFT (which held a full pupil's
+    install frame 0.11-0.17 s), and its slopes are the inline mode's."""
+    s, stacks = _narrow_polar_frames(seed=8, count=5)
+    lay = geometry.layout(s)
+    frames = [geometry.stack_to_frame(st.astype(np.uint16), lay) for st in stacks]
+    inline = table.build("corr", s, {"pupil_period": 2})
+    live = table.build("corr", s, {"pupil_period": 2, "pupil_async": True})
+    want = [inline.centroid(f) for f in frames]
+    for f in frames[:4]:
+        live.centroid(f)
+        live.pupil.wait()
+    assert live.pupil.fits == 1 and live.pupil._job is not None     # the second: done, not in
+    before = live._kernel_ref[0][0].copy()
+
+    def on_frame_path(*args, **kwargs):
+        raise AssertionError("the correlation's references were made on the frame path")
+    live.correlation_map = live._ref_fft = live._take_pupil_reference = on_frame_path
+    live.pupil.reference_counts = live.pupil.drift_counts = on_frame_path
+    got = live.centroid(frames[4])
+    del live.correlation_map, live._ref_fft, live._take_pupil_reference
+    del live.pupil.reference_counts, live.pupil.drift_counts
+    assert live.pupil.fits == 2 and np.abs(live._drift).max() > 0
+    assert np.abs(live._kernel_ref[0][0].astype(int) - before).max() > 0     # refitted rows
+    np.testing.assert_array_equal(got, want[4])
+    live.pupil.wait()
+
+
 def test_background_refit_gives_ml_the_drift_marginals_it_reads():
     """ml with pupil_async follows the drift from the drifted and the current reference's
     marginals: a background refit makes both in its thread, so the frame that installs it
