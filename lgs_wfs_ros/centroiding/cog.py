@@ -10,6 +10,8 @@ Pixel origin: the slope is measured from ``(p-1)/2`` (7.5 for 16 px). aotools'
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from . import kernels
@@ -162,15 +164,35 @@ class TabledCoG(CoG):
     """A pupil-calibrated CoG whose refits also build per-profile tables (``ml``'s
     likelihood tables, ``gmf``'s filters). Subclasses give ``_prepare(calibration) ->
     payload`` (a dict with the calibration's ``version``; run in the refit thread when
-    ``pupil_async``) and ``_install(payload)``, and call :meth:`_start_tables` once built."""
+    ``pupil_async``; :meth:`_with_drift` adds the drift read through its tables),
+    ``_set_tables(payload)``, ``_follow_tables()`` (the drift, as ``_follow_drift``) and
+    ``_install(payload)``, and call :meth:`_start_tables` once built."""
 
     #: what the frame path reads of a refit beside the tables (``PupilCalibration.reads``):
     #: the drifted reference, to follow the drift between refits
     refit_reads = ("drift_counts",)
 
+    #: what :meth:`_with_drift`'s copy made besides the drift, handed to the frame path too
+    _drift_keeps: tuple = ()
+
     def _start_tables(self) -> None:
         self.pupil.delegate(self._prepare, self.refit_reads)
         self._install(self._prepare(self.pupil))
+
+    def _with_drift(self, calibration, payload: dict) -> dict:
+        """``payload`` with ``drift``: :meth:`Centroider._follow_drift`'s move as read through
+        the tables in it (``_set_tables(payload)``, then ``_follow_tables()``, on a shallow
+        copy of this estimator holding them), where they are built: a background refit's
+        thread, not the frame that installs them (the full pupil's two readings held it
+        6.5 ms polar, 20 ms cartesian before, 2026-11-29). Nothing the frame path uses is
+        written."""
+        sh = copy.copy(self)
+        sh.pupil = calibration
+        sh._set_tables(payload)
+        sh._follow_tables()
+        payload["drift"] = sh._drift
+        payload.update({k: sh.__dict__[k] for k in self._drift_keeps})
+        return payload
 
     def _refresh(self) -> None:
         """Tables of the calibration's current profile (a background refit's, or built now)."""

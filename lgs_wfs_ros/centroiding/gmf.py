@@ -137,9 +137,9 @@ class GMF(TabledCoG):
         else:
             for k, *images in self._position_images(calibration):
                 filters[k], scale[k], rsum[k], good[k] = _numpy_filters(*images, *args)
-        return {"version": calibration.version, "filters": filters, "scale": scale,
-                "rsum": rsum, "good": good, "ok": good.all(axis=0),
-                "bias": calibration.cog_bias()}
+        return self._with_drift(calibration, {
+            "version": calibration.version, "filters": filters, "scale": scale, "rsum": rsum,
+            "good": good, "ok": good.all(axis=0), "bias": calibration.cog_bias()})
 
     def _take_tables(self) -> tuple:
         """``(filters (G, n, 2, p*p) int16, scale (G, n, 2), rsum (G, n, 2), good (G, n))``
@@ -253,10 +253,16 @@ class GMF(TabledCoG):
         if getattr(self, "_filters", None) is not None and self._filters is not payload["filters"]:
             with self._spare_lock:      # the tables in use until now: the next refit's
                 self._spare = (self._filters, self._scale, self._rsum, self._good)
+        self._set_tables(payload)
+        self._drift = payload["drift"]
+
+    def _set_tables(self, payload: dict) -> None:
         self._version, self._good = payload["version"], payload["good"]
         self._filters, self._scale = payload["filters"], payload["scale"]
         self._rsum = payload["rsum"]
         self._ok, self._bias = payload["ok"], payload["bias"]
+
+    def _follow_tables(self) -> None:
         self._follow_drift(lambda c: self._numpy_slopes(c.reshape(self.n, -1) + self.background)[0])
 
     # -- frames --------------------------------------------------------------------------

@@ -150,12 +150,21 @@ class ML(TabledCoG):
             return ProfileSpots(sensor, self.layout.r_m, self.layout.e, calibration.nodes_m,
                                 calibration.light, 1.5)
         tables = Tables(spots_of, self.sensor, self.step, self.extent)
-        return {"version": calibration.version, "bias": tables.bias, "tables": tables}
+        return self._with_drift(calibration, {"version": calibration.version,
+                                              "bias": tables.bias, "tables": tables})
+
+    _drift_keeps = ("_rows",)                       # the numpy path's, made for the drift
 
     def _install(self, payload: dict) -> None:
+        self._set_tables(payload)
+        self._drift, self._rows = payload["drift"], payload["_rows"]
+
+    def _set_tables(self, payload: dict) -> None:
         self._version = payload["version"]
         self._tables, self._bias = payload["tables"], payload["bias"]
         self._rows = None                           # the numpy path's, made when needed
+
+    def _follow_tables(self) -> None:
         self._follow_drift_marginals()
 
     def _follow_drift_marginals(self) -> None:
