@@ -699,12 +699,15 @@ def test_background_refit_makes_the_correlations_references_in_its_thread():
     live.pupil.wait()
 
 
-@pytest.mark.parametrize("alg, detector", [("cmf", "cartesian"), ("ml", "polar")])
-def test_background_refit_reads_the_drift_through_its_tables_in_its_thread(alg, detector):
-    """The grid of filters (cmf's default) and ml with pupil_async: the drift between refits
-    is read through the new tables in the refit's thread; the frame that installs the second
-    refit (the first with a drift) reads nothing through them beyond its own blocks, and the
-    drift it installs is the one its tables read on that frame."""
+@pytest.mark.parametrize("alg, detector, opts, reading", [
+    ("cmf", "cartesian", {}, "_numpy_slopes"), ("ml", "polar", {}, "_marginals_reading"),
+    ("cog", "cartesian", {"bias": "pupil"}, "_reading")])
+def test_background_refit_reads_the_drift_in_its_thread(alg, detector, opts, reading):
+    """The grid of filters (cmf's default), ml and the calibrated CoG with pupil_async: the
+    drift between refits is read through the new tables (bias, response) in the refit's
+    thread; the frame that installs the second refit (the first with a drift) reads nothing
+    through them beyond its own blocks, and the drift it installs is the one they read on
+    that frame."""
     s = SMALL.replace(detector=detector)
     lay = geometry.layout(s)
     _, _, sm = true_spots(s, "high")
@@ -712,7 +715,7 @@ def test_background_refit_reads_the_drift_through_its_tables_in_its_thread(alg, 
     frames = [geometry.stack_to_frame(rng.poisson(sm.images(rng.normal(0, 0.3, (lay.n_valid, 2)))[0]
                                                   * 1000.0).astype(np.uint16), lay)
               for _ in range(5)]
-    live = table.build(alg, s, {"pupil_period": 2, "pupil_async": True})
+    live = table.build(alg, s, {**opts, "pupil_period": 2, "pupil_async": True})
     for f in frames[:4]:
         live.centroid(f)
         live.pupil.wait()
@@ -721,15 +724,18 @@ def test_background_refit_reads_the_drift_through_its_tables_in_its_thread(alg, 
 
     def on_frame_path(*args, **kwargs):
         raise AssertionError("the drift was read on the install frame")
-    reading = "_numpy_slopes" if alg == "cmf" else "_marginals_reading"
-    setattr(live, reading, on_frame_path)
-    live._follow_tables = live._follow_drift = on_frame_path
+    frame_path = (reading, "_follow_drift", "_follow_tables", "_calibrated")
+    for name in frame_path:
+        setattr(live, name, on_frame_path)
     live.centroid(frames[4])
-    delattr(live, reading)
-    del live._follow_tables, live._follow_drift
+    for name in frame_path:
+        delattr(live, name)
     assert live.pupil.fits == 2 and np.abs(live._drift).max() > 0
     installed = live._drift.copy()
-    live._follow_tables()                            # read now, through the installed tables
+    if alg == "cog":                                 # read now, through what is installed
+        live._follow_drift(live._reading)
+    else:
+        live._follow_tables()
     np.testing.assert_array_equal(installed, live._drift)
     live.pupil.wait()
 
