@@ -160,6 +160,18 @@ class Centroider:
         dtype = np.float64 if stack.dtype == np.float64 else np.float32
         return stack.astype(dtype, copy=False)
 
+    def _take_refit(self, install) -> None:
+        """At a pupil refit: swap in what a background refit's thread built (its payload, a
+        dict of attributes; a new ``ref`` keeps this one's frame count), else ``install()``
+        now (inline refits, or no ``prepare`` delegated)."""
+        payload, self.pupil.payload = self.pupil.payload, None
+        if payload is None:
+            install()
+            return
+        if "ref" in payload:
+            payload["ref"].frames = self.ref.frames
+        self.__dict__.update(payload)
+
     def _follow_drift(self, read) -> None:
         """At a refit: how this estimator's reading of a spot at the true centre moves from
         the middle of the period the refit serves to its end, as the calibration's trend

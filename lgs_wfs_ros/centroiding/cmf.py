@@ -265,12 +265,7 @@ class CMF(Centroider):
     def _pupil_refitted(self) -> None:
         """Install what a refit gives: inline, the reference (the filter and its response
         are rebuilt lazily); from a background refit, the filter and response it built."""
-        payload, self.pupil.payload = self.pupil.payload, None
-        if payload is None:
-            self._install_pupil()
-            return
-        payload["ref"].frames = self.ref.frames
-        self.__dict__.update(payload)
+        self._take_refit(self._install_pupil)
 
     # what a background refit builds and the frame path swaps in (see _prepare_pupil)
     _REFIT_STATE = ("ref", "A", "M", "_at_buf", "_ref_ok", "_ref_counts", "_built_version",

@@ -99,7 +99,7 @@ class CoG(Centroider):
             else:
                 seen = self.pupil.observe(flat, ok)
             if seen:
-                self._take_calibration()
+                self._take_refit(self._calibrated)
             if self._response is None:
                 out -= self._bias
             else:
@@ -138,14 +138,6 @@ class CoG(Centroider):
         sh.pupil = calibration
         sh._calibrated()
         return {"_bias": sh._bias, "_response": sh._response, "_drift": sh._drift}
-
-    def _take_calibration(self) -> None:
-        """At a refit: what a background refit's thread prepared, else :meth:`_calibrated`."""
-        payload, self.pupil.payload = self.pupil.payload, None
-        if payload is None:
-            self._calibrated()
-        else:
-            self.__dict__.update(payload)
 
     def _calibrated(self) -> None:
         """Take the calibration's current bias and, linearised, its response, and follow

@@ -120,12 +120,7 @@ class Correlation(Centroider):
     def _pupil_refitted(self) -> None:
         """Install what a refit gives: inline, the references (their maps and rows built
         here); from a background refit, what its thread built."""
-        payload, self.pupil.payload = self.pupil.payload, None
-        if payload is None:
-            self._take_pupil_reference()
-            return
-        payload["ref"].frames = self.ref.frames
-        self.__dict__.update(payload)
+        self._take_refit(self._take_pupil_reference)
 
     def set_reference(self, images) -> None:
         """Install a static reference ``(n_valid, p, p)`` counts, block pixel axes."""
