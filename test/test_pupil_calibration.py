@@ -797,6 +797,32 @@ def test_background_refit_makes_the_networks_references_in_its_thread():
     live.pupil.wait()
 
 
+def test_a_failed_background_refit_costs_one_frame_not_the_centroider():
+    """pupil_async: a refit that raises in its thread (here its prepare, once) re-raises on
+    the frame that would install it, once; the frames after it are centroided with the
+    calibration in use, and the next period's refit installs as usual."""
+    s, stacks = _narrow_polar_frames(seed=10, count=8)
+    live = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True, "filters": "single"})
+    prepare, calls = live.pupil.prepare, []
+
+    def fails_once(cal):
+        calls.append(1)
+        if len(calls) == 1:
+            raise np.linalg.LinAlgError("injected")
+        return prepare(cal)
+    live.pupil.prepare = fails_once
+    raised = []
+    for k, f in enumerate(stacks):
+        try:
+            out = live.centroid(f)
+            assert np.isfinite(out).all()
+        except np.linalg.LinAlgError:
+            raised.append(k)
+        live.pupil.wait()
+    assert raised == [2]                     # the first refit's install frame, once
+    assert live.pupil.fits >= 2 and len(calls) >= 3
+
+
 def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
     """pupil_async_lag: each refit is installed exactly lag frames after it started, so a
     refit that is slow (held 0.3 s in its thread) and one that is not give the same slopes

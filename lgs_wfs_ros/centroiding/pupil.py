@@ -356,11 +356,13 @@ class PupilCalibration:
         return clone, payload
 
     def _poll(self) -> bool:
-        """Install a finished background refit (fit state and ``payload``); True if so."""
+        """Install a finished background refit (fit state and ``payload``); True if so. A
+        refit that failed re-raises its error here, once, as an inline refit's would (that
+        frame is lost); the calibration in use stays and the next period refits again."""
         if self._job is None or not self._job.done():
             return False
-        clone, payload = self._job.result()                  # re-raises a refit's error
-        self._job = None
+        job, self._job = self._job, None
+        clone, payload = job.result()                        # re-raises a refit's error
         for name in _FIT_STATE:
             if name in clone.__dict__:
                 setattr(self, name, clone.__dict__[name])
