@@ -17,8 +17,9 @@ Refits: the CPU of one inline (``cmf`` cartesian, ``ml`` polar; on a static prof
 the simulator's evolving one, whose fit iterates more), and whether ``ml`` with its
 refits in a thread, one period late, keeps up with frames offered at 700 Hz (wall time:
 the rate the frames went through, the frames over 5 ms, the process's CPU in cores), and
-how often ``cmf``'s and ``corr``'s refits, in a thread and installed when ready, land on a
-live cartesian node (refits installed a period: 1 when they keep up with the period).
+how often the refits of ``cmf``, ``corr`` and ``ann`` (cartesian; ``ann`` polar too), in a
+thread and installed when ready, land on a live node (refits installed a period: 1 when they
+keep up with the period).
 
 Run: ``python benchmarks/bench_centroiders.py [--quick]``.
 """
@@ -387,6 +388,10 @@ def run(quick: bool = False) -> list[dict]:
                             "cmf live (cartesian), refits in a thread, each installed when ready")
     results += _live_refits("corr", sensor, live_s, 0,
                             "corr live (cartesian), refits in a thread, each installed when ready")
+    results += _live_refits("ann", sensor, live_s, 0,
+                            "ann live (cartesian), refits in a thread, each installed when ready")
+    results += _live_refits("ann", polar, live_s, 0,
+                            "ann live (polar), refits in a thread, each installed when ready")
 
     with tempfile.TemporaryDirectory() as tmp:
         path = _mlp(Path(tmp) / "mlp.onnx")
