@@ -427,6 +427,11 @@ def test_reference_image_is_the_reference_rendered_once_per_profile(monkeypatch)
     assert cal.reference_image() is img and len(renders) == 1   # cached for this profile
     full = cal.reference()
     assert full[0] is img and len(renders) == 5                 # derivatives added, image reused
+    zero = np.zeros((cal.n, 2))                                 # counts at no shift: no render
+    np.testing.assert_array_equal(cal.image_at(zero), real(spots, zero) * cal._to_counts(img))
+    assert len(renders) == 5
+    cal.image_at(zero + [0.1, 0.0])
+    assert len(renders) == 6
     _, _, sm = true_spots(s, "narrow")
     frame = sm.images(np.zeros((cal.n, 2)))[0] * 1000.0
     for _ in range(2):

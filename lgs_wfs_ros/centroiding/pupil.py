@@ -790,7 +790,10 @@ class PupilCalibration:
 
     def image_at(self, shift_block: np.ndarray) -> np.ndarray:
         """``(n, p, p)`` noise-free counts of the current reference displaced by
-        ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts`."""
+        ``shift_block (n, 2)`` px (block axes), on the scale of :meth:`counts` (no shift:
+        :meth:`reference_counts`, the same render, not made again)."""
+        if not np.any(shift_block):
+            return self.reference_counts()
         return self.spots().image_at(shift_block) * self._to_counts(self.reference_image())
 
     def marginals_at(self, shift_block: np.ndarray) -> np.ndarray:
