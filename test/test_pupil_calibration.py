@@ -848,6 +848,33 @@ def test_background_refit_with_a_lag_lands_on_the_same_frame_however_slow():
     fast.pupil.wait()
 
 
+def test_description_says_how_late_the_profile_in_use_is():
+    """``describe()``'s pupil calibration (and a node's /diagnostics) says how many frames
+    the profile in use lags behind the frames seen and how long the last refit took: inline,
+    0 on the frame that refits; with ``pupil_async_lag`` 3, 3 on the frame that installs
+    (and one more each frame after); None before the first fit."""
+    from lgs_wfs_ros.ros.centroider_node import pupil_values
+    s, frames = _narrow_polar_frames(seed=6, count=6)
+    inline = table.build("cmf", s, {"pupil_period": 2, "filters": "single"})
+    late = table.build("cmf", s, {"pupil_period": 2, "pupil_async": True, "pupil_async_lag": 3,
+                                  "filters": "single"})
+    assert inline.describe()["pupil_calibration"]["profile_age_frames"] is None
+    ages = []
+    for f in frames:
+        inline.centroid(f)
+        late.centroid(f)
+        ages.append((inline.describe()["pupil_calibration"]["profile_age_frames"],
+                     late.describe()["pupil_calibration"]["profile_age_frames"]))
+    # inline refits end frames 2, 4, 6; the late ones start at 2 and 5 and land 3 after
+    assert ages == [(None, None), (0, None), (1, None), (0, None), (1, 3), (0, 4)]
+    d = late.describe()["pupil_calibration"]
+    assert d["asynchronous"] and d["lag"] == 3 and 0 < d["last_refit_s"] < 60
+    vals = pupil_values(late)
+    assert vals["pupil refits"] == 1 and vals["pupil profile age frames"] == 4
+    assert pupil_values(table.build("cog", s, {})) == {}
+    late.pupil.wait()
+
+
 def test_shipped_network_less_its_reading_of_the_reference_reads_truncated_spots():
     """``ann_conv`` (the default polar network) reads compact spots half out of the field
     (a layer at 100-105 km) ~0.05 px short along e at r > 11 m; less its own reading of the

@@ -41,6 +41,7 @@ import copy
 import dataclasses
 import math
 import threading
+import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
@@ -168,6 +169,8 @@ class PupilCalibration:
         self.fits = 0
         self.version = getattr(self, "version", 0) + 1
         self._refs = None
+        self.refit_s = None                      # wall s of the last refit (see describe)
+        self._fit_end = 0                        # frames seen when its accumulators were taken
         self._bias = None        # (version, cog_bias)
         self._response = None    # (version, cog_response)
 
@@ -323,7 +326,10 @@ class PupilCalibration:
         """Blend the accumulated mean images into the average and refit the profile, now
         (inline, whatever ``asynchronous`` says)."""
         snap = self._take()
-        if not self._fit(snap, self.period):                 # nothing usable: keep it
+        t0 = time.perf_counter()
+        fitted = self._fit(snap, self.period)
+        self.refit_s = time.perf_counter() - t0
+        if not fitted:                                       # nothing usable: keep it
             self._acc += snap[0]
             self._count += snap[1]
 
@@ -349,10 +355,12 @@ class PupilCalibration:
     def _work(self, clone, snap):
         """A background refit: the fit, ``prepare``'s payload, then what ``reads`` names (and
         the CoG bias the altitude tracker reads), all cached on ``clone``."""
+        t0 = time.perf_counter()
         clone._fit(snap, snap[5])
         payload = None if self.prepare is None else self.prepare(clone)
         for name in self.reads + (("cog_bias",) if self.altitude_s > 0 else ()):
             getattr(clone, name)()
+        clone.refit_s = time.perf_counter() - t0
         return clone, payload
 
     def _poll(self) -> bool:
@@ -417,6 +425,7 @@ class PupilCalibration:
         self.fits += 1
         self.version += 1
         self._refs = None
+        self._fit_end = end
         return True
 
     def _decays(self, frames: int) -> tuple[float, float]:
@@ -834,6 +843,13 @@ class PupilCalibration:
         if self.light_drift is not None:
             drift = round(float(harmonic_altitude(*node_density(self.nodes_m, self.light_drift))) - alt, 1)
         return {"fits": self.fits, "frames_seen": self._frames, "period": self.period,
+                "asynchronous": self.asynchronous, "lag": self.lag,
+                # wall s of the last refit: in its thread the fit and what the estimator
+                # builds from it, inline the fit alone (the estimator's part follows)
+                "last_refit_s": None if self.refit_s is None else round(self.refit_s, 3),
+                # frames since the accumulators the profile in use was fitted from were
+                # taken: what a live node's references lag behind the sky
+                "profile_age_frames": self._frames - self._fit_end if self.fits else None,
                 "tilt_blur_px": round(self.blur_px, 3),
                 "time_constant_s": self.time_constant_s, "stride": self.stride,
                 "trend": self.trend, "altitude_s": self.altitude_s,
@@ -956,6 +972,7 @@ def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
 
 # What a background refit changes (installed at a frame boundary, see PupilCalibration._poll).
 _FIT_STATE = ("state", "state_slow", "flux", "_state_ok", "light", "fits", "version", "_refs",
+              "refit_s", "_fit_end",
               "_bias", "_response", "blur_px", "_basis", "_dbasis", "_colsum", "_dcolsum",
               "_gram", "_rough", "_spread", "light_drift", "_drift_at", "_drift_refs",
               "_drift_margs", "_ref_margs")

@@ -531,7 +531,8 @@ class CentroiderNode(Node):
 
     def _diagnostic_values(self) -> dict:
         return {**self.counters.as_dict(), "algorithm": self.get_parameter("algorithm").value,
-                "frame_shape": "x".join(map(str, self.sensor.frame_shape))}
+                "frame_shape": "x".join(map(str, self.sensor.frame_shape)),
+                **pupil_values(self.centroider)}
     def destroy_node(self):
         if self._inlet is not None:          # stop reading shared memory first
             self._inlet.close()
@@ -547,6 +548,19 @@ class CentroiderNode(Node):
         if c.received and line != self._last_line:
             self.get_logger().info(line)
         self._last_line = line
+
+
+def pupil_values(centroider) -> dict:
+    """``/diagnostics`` values of a centroider's pupil calibration (none without one): its
+    refits, the wall seconds of the last (in its thread when ``pupil_async``) and how many
+    frames the profile in use lags behind the frames seen (a period or two when the refits
+    keep up)."""
+    pupil = getattr(centroider, "pupil", None)
+    if pupil is None:
+        return {}
+    d = pupil.describe()
+    return {"pupil refits": d["fits"], "pupil last refit s": d["last_refit_s"],
+            "pupil profile age frames": d["profile_age_frames"], "pupil period": d["period"]}
 
 
 def _final_counts(node) -> None:
