@@ -6,7 +6,6 @@ graph cuts and folds made at load time) is :mod:`.ann_model`.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 from pathlib import Path
 
@@ -258,8 +257,7 @@ class ANN(Centroider):
         thread on its snapshot with ``pupil_async`` (the network's filters, its reading of
         each reference and the straightened response: 0.3-1.4 s a cartesian refit that held
         the frame path), else on the frame that completes a period."""
-        sh = copy.copy(self)
-        sh.pupil = calibration
+        sh = self._copy_on(calibration)
         sh._take_reference()
         out = {k: sh.__dict__[k] for k in self._INSTALL_STATE if k in sh.__dict__}
         out["version"] = calibration.version

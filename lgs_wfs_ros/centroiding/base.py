@@ -16,6 +16,8 @@ rotates the result back with :func:`lgs_wfs_ros.optics.geometry.local_to_detecto
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from ..optics import geometry
@@ -159,6 +161,15 @@ class Centroider:
         stack = self.as_stack(data)
         dtype = np.float64 if stack.dtype == np.float64 else np.float32
         return stack.astype(dtype, copy=False)
+
+    def _copy_on(self, calibration, **attrs) -> "Centroider":
+        """A shallow copy of this estimator reading ``calibration`` (a background refit's
+        snapshot), with ``attrs`` set on the copy: what a refit's thread builds the new
+        tables on, so that nothing the frame path reads is written."""
+        sh = copy.copy(self)
+        sh.pupil = calibration
+        sh.__dict__.update(attrs)
+        return sh
 
     def _take_refit(self, install) -> None:
         """At a pupil refit: swap in what a background refit's thread built (its payload, a

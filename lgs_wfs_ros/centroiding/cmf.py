@@ -276,10 +276,8 @@ class CMF(Centroider):
         copy of this centroider with its own reference, design buffers and filter builds
         the new reference, filter and response calibration; returns the attributes to
         swap in. Nothing the frame path uses is written."""
-        sh = copy.copy(self)
-        sh.pupil = calibration
-        sh.ref = copy.copy(self.ref)
-        sh._at_buf = sh._work = sh._model_R = None
+        sh = self._copy_on(calibration, ref=copy.copy(self.ref), _at_buf=None, _work=None,
+                           _model_R=None)
         sh._install_pupil()
         sh._rebuild_design()
         if sh.weighting == "model":

@@ -10,8 +10,6 @@ Pixel origin: the slope is measured from ``(p-1)/2`` (7.5 for 16 px). aotools'
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from . import kernels
@@ -134,8 +132,7 @@ class CoG(Centroider):
         what :meth:`_calibrated` takes from it, made by a shallow copy of this estimator (the
         drift's reading held the install frame 5-6 ms a full pupil before, 2026-11-29).
         Nothing the frame path uses is written."""
-        sh = copy.copy(self)
-        sh.pupil = calibration
+        sh = self._copy_on(calibration)
         sh._calibrated()
         return {"_bias": sh._bias, "_response": sh._response, "_drift": sh._drift}
 
@@ -198,8 +195,7 @@ class TabledCoG(CoG):
         thread, not the frame that installs them (the full pupil's two readings held it
         6.5 ms polar, 20 ms cartesian before, 2026-11-29). Nothing the frame path uses is
         written."""
-        sh = copy.copy(self)
-        sh.pupil = calibration
+        sh = self._copy_on(calibration)
         sh._set_tables(payload)
         sh._follow_tables()
         payload["drift"] = sh._drift

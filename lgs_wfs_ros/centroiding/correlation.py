@@ -110,9 +110,7 @@ class Correlation(Centroider):
         validity, the compiled pass's rows and the drift's reading (on the install frame
         these held a full cartesian pupil's frame path 0.11-0.17 s, 2026-11-29); returns the
         attributes to swap in. Nothing the frame path uses is written."""
-        sh = copy.copy(self)
-        sh.pupil = calibration
-        sh.ref = copy.copy(self.ref)
+        sh = self._copy_on(calibration, ref=copy.copy(self.ref))
         sh._take_pupil_reference()
         sh._ref_kernel()
         return {k: sh.__dict__[k] for k in self._REFIT_STATE if k in sh.__dict__}

@@ -188,15 +188,8 @@ def _monomials(m: np.ndarray, degree: int) -> np.ndarray:
     for d in range(1, degree + 1):                      # powers by products (np.power is slow)
         xp[d] = xp[d - 1] * x
         yp[d] = yp[d - 1] * y
-    i = np.array([i for d in range(degree + 1) for i in range(d + 1)])
-    return np.moveaxis(xp[i] * yp[_total_less(degree, i)], 0, -1)
-
-
-def _total_less(degree: int, i: np.ndarray) -> np.ndarray:
-    """The powers of ``y`` beside ``x^i`` in :func:`_monomials`' order: ``d - i`` for each
-    total degree ``d`` in turn."""
-    d = np.array([d for d in range(degree + 1) for _ in range(d + 1)])
-    return d - i
+    i, j = np.array([(i, d - i) for d in range(degree + 1) for i in range(d + 1)]).T
+    return np.moveaxis(xp[i] * yp[j], 0, -1)
 
 
 def _fit_inverse(resp: np.ndarray, grid: np.ndarray, degree: int) -> np.ndarray:

@@ -533,6 +533,7 @@ class CentroiderNode(Node):
         return {**self.counters.as_dict(), "algorithm": self.get_parameter("algorithm").value,
                 "frame_shape": "x".join(map(str, self.sensor.frame_shape)),
                 **pupil_values(self.centroider)}
+
     def destroy_node(self):
         if self._inlet is not None:          # stop reading shared memory first
             self._inlet.close()
