@@ -102,7 +102,7 @@ def test_warm_up_compiles_the_frame_kernels_for_read_only_frames():
     for disp in (kernels.blocks._cog_moments, kernels.filters._filter_flux,
                  kernels.filters._filter_flux_q, kernels.filters._grid_filter,
                  kernels.ml._ml_search, kernels.blocks._block_marginals,
-                 kernels.corr._corr_peak):
+                 kernels.corr._corr_lags):
         frames = {sig[0].mutable for sig in disp.signatures}
         assert frames >= {True, False}, disp
 

@@ -80,21 +80,24 @@ def _lag_block9_impl(xw, refw, p, m, lx, ly, k0, k1, v):
 CORR_PAD = 3
 
 
-def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log, climbs, out):
+def _corr_lags_impl(frame, origins, p, refw, spans, m, ref_cog, background, log, climbs, v,
+                    lag, lr):
     # per block: the block less the background into the padded buffer, its CoG; the whole
     # lag nearest to CoG - the reference's CoG; the 3 x 3 correlation values around it,
     # moved to their maximum until it is the centre (at most ``climbs`` moves, each keeping
     # the values the new 3 x 3 shares with the old: the same numbers, 12-19 % faster a full
-    # frame than computing all nine again); then the quadratic (of the log with ``log``)
-    # through the 3 x 3 values, as correlation._parabola_peak. Measured on the benchmark's
-    # cartesian frame (2026-11-27): the nine values in one sweep (_lag_block9) 1.41 -> 1.00
-    # ms, integer block sums, int16 references and five logs of ratios instead of nine
-    # logs -> 0.88 ms; reading the blocks alone costs 0.22 ms, the sweep 0.28 ms
+    # frame than computing all nine again; one sweep for a climb's new row or column
+    # instead of three dots measured no faster, 2026-11-29). Into v[b] (the nine values,
+    # row-major, NaN for a block without light), lag[b] (their centre) and, with ``log``,
+    # lr[b] the five ratios whose logs the quadratic of the log takes (_corr_vertex; 1 where
+    # a value is not positive). Measured on the benchmark's cartesian frame (2026-11-27):
+    # the nine values in one sweep (_lag_block9) 1.41 -> 1.00 ms, integer block sums, int16
+    # references and five logs of ratios instead of nine logs -> 0.88 ms; reading the
+    # blocks alone costs 0.22 ms, the sweep 0.28 ms
     n = origins.shape[0]
     c = (p - 1) / 2.0
     w = p + 2 * m
     xw = np.zeros(3 * p * w, dtype=np.float32)
-    v = np.empty(9)
     w9 = np.empty(9)
     bg = np.float32(background)
     for b in range(n):
@@ -124,22 +127,25 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
         ref = refw[b]
         k0 = spans[b, 0]
         k1 = spans[b, 1]
+        vb = v[b]
         if not s > 0 or k1 <= k0:
-            out[b, 0] = np.nan
-            out[b, 1] = np.nan
+            vb[:] = np.nan
+            lag[b, 0] = lag[b, 1] = 0
+            if log:
+                lr[b, :] = 1.0
             continue
         lim = p - 2
         lx = min(max(int(np.floor(sx / s - ref_cog[b, 0] + 0.5)), -lim), lim)
         ly = min(max(int(np.floor(sy / s - ref_cog[b, 1] + 0.5)), -lim), lim)
         if -m < lx < m:
-            _lag_block9(xw, ref, p, m, lx, ly, k0, k1, v)
+            _lag_block9(xw, ref, p, m, lx, ly, k0, k1, vb)
         else:
             for k in range(9):
-                v[k] = _lag_product(xw, ref, p, m, lx + k % 3 - 1, ly + k // 3 - 1, k0, k1)
+                vb[k] = _lag_product(xw, ref, p, m, lx + k % 3 - 1, ly + k // 3 - 1, k0, k1)
         for step in range(climbs + 1):
             best = 0
             for k in range(1, 9):
-                if v[k] > v[best]:
+                if vb[k] > vb[best]:
                     best = k
             if best == 4 or step == climbs:
                 break
@@ -155,30 +161,59 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
                 ox = k % 3 - 1 + mx
                 oy = k // 3 - 1 + my
                 if -1 <= ox <= 1 and -1 <= oy <= 1:
-                    w9[k] = v[(oy + 1) * 3 + ox + 1]
+                    w9[k] = vb[(oy + 1) * 3 + ox + 1]
                 else:
                     w9[k] = _lag_product(xw, ref, p, m, nx + k % 3 - 1, ny + k // 3 - 1, k0, k1)
             for k in range(9):
-                v[k] = w9[k]
+                vb[k] = w9[k]
             lx = nx
             ly = ny
+        lag[b, 0] = lx
+        lag[b, 1] = ly
+        if log:
+            positive = True
+            for k in range(9):
+                if not vb[k] > 0:
+                    positive = False
+            if positive:
+                lr[b, 0] = vb[5] / vb[3]
+                lr[b, 1] = vb[5] * vb[3] / (vb[4] * vb[4])
+                lr[b, 2] = vb[7] / vb[1]
+                lr[b, 3] = vb[7] * vb[1] / (vb[4] * vb[4])
+                lr[b, 4] = vb[8] * vb[0] / (vb[6] * vb[2])
+            else:
+                lr[b, :] = 1.0
+
+
+def _corr_vertex_impl(v, lag, lr, log, out):
+    # per block: the lag plus the vertex of the quadratic through the nine values v[b]
+    # around it (with ``log``, of their log, from lr[b] the logs of _corr_lags's five
+    # ratios: taken by numpy's vectorised log between the passes, 0.01 ms a full frame
+    # against 0.09 for five calls a block, 2026-11-29), as correlation._parabola_peak; NaN
+    # for a block without light
+    for b in range(v.shape[0]):
+        vb = v[b]
+        if not vb[4] == vb[4]:
+            out[b, 0] = np.nan
+            out[b, 1] = np.nan
+            continue
         positive = log
         if log:
             for k in range(9):
-                if not v[k] > 0:
+                if not vb[k] > 0:
                     positive = False
         if positive:            # the quadratic of the log: five logs of ratios, not nine
-            bb = 0.5 * np.log(v[5] / v[3])
-            d = 0.5 * np.log(v[5] * v[3] / (v[4] * v[4]))
-            cc = 0.5 * np.log(v[7] / v[1])
-            f = 0.5 * np.log(v[7] * v[1] / (v[4] * v[4]))
-            e = 0.25 * np.log(v[8] * v[0] / (v[6] * v[2]))
+            bb = 0.5 * lr[b, 0]
+            d = 0.5 * lr[b, 1]
+            cc = 0.5 * lr[b, 2]
+            f = 0.5 * lr[b, 3]
+            e = 0.25 * lr[b, 4]
         else:
-            bb = (v[5] - v[3]) / 2
-            d = (v[5] + v[3]) / 2 - v[4]
-            cc = (v[7] - v[1]) / 2
-            f = (v[7] + v[1]) / 2 - v[4]
-            e = (v[8] - v[6] - v[2] + v[0]) / 4
+            bb = (vb[5] - vb[3]) / 2
+            d = (vb[5] + vb[3]) / 2 - vb[4]
+            cc = (vb[7] - vb[1]) / 2
+            f = (vb[7] + vb[1]) / 2 - vb[4]
+            e = (vb[8] - vb[6] - vb[2] + vb[0]) / 4
         det = 4 * d * f - e * e
         if d < 0 and det > 0:
             ox = (e * cc - 2 * f * bb) / det
@@ -186,8 +221,8 @@ def _corr_peak_impl(frame, origins, p, refw, spans, m, ref_cog, background, log,
         else:
             ox = -bb / (2 * d) if d < 0 else 0.0
             oy = -cc / (2 * f) if f < 0 else 0.0
-        out[b, 0] = lx + min(max(ox, -1.0), 1.0)
-        out[b, 1] = ly + min(max(oy, -1.0), 1.0)
+        out[b, 0] = lag[b, 0] + min(max(ox, -1.0), 1.0)
+        out[b, 1] = lag[b, 1] + min(max(oy, -1.0), 1.0)
 
 
 if _jit.COMPILED:
@@ -196,8 +231,10 @@ if _jit.COMPILED:
         _lag_product_impl)
     _lag_block9 = _jit.numba.njit(cache=True, nogil=True, fastmath=True, inline="always")(
         _lag_block9_impl)
-    _corr_peak = _jit.numba.njit(cache=True, nogil=True, error_model="numpy",
-                            fastmath={"contract", "reassoc", "nsz", "arcp"})(_corr_peak_impl)
+    _corr_lags = _jit.numba.njit(cache=True, nogil=True, error_model="numpy",
+                                 fastmath={"contract", "reassoc", "nsz", "arcp"})(_corr_lags_impl)
+    _corr_vertex = _jit.numba.njit(cache=True, nogil=True, error_model="numpy")(
+        _corr_vertex_impl)
 
 
 def corr_rows(refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -238,9 +275,14 @@ def corr_peak(frame: np.ndarray, origins: np.ndarray, p: int, refw: tuple,
     if (refw.shape != (n, p * (p + 2 * CORR_PAD)) or refw.dtype != np.int16
             or spans.shape != (n, 2) or spans.dtype != np.int64):
         raise ValueError("corr_peak: refw must be corr_rows(references)")
+    v = np.empty((n, 9))
+    lag = np.empty((n, 2), dtype=np.int64)
+    lr = np.empty((n, 5))
+    _corr_lags(frame, origins, int(p), np.ascontiguousarray(refw), np.ascontiguousarray(spans),
+               CORR_PAD, np.ascontiguousarray(ref_cog, dtype=np.float64), float(background),
+               bool(log), int(climbs), v, lag, lr)
+    if log:
+        np.log(lr, out=lr)
     out = np.empty((n, 2))
-    _corr_peak(frame, origins, int(p), np.ascontiguousarray(refw), np.ascontiguousarray(spans),
-               CORR_PAD,
-               np.ascontiguousarray(ref_cog, dtype=np.float64), float(background), bool(log),
-               int(climbs), out)
+    _corr_vertex(v, lag, lr, bool(log), out)
     return out
