@@ -260,7 +260,15 @@ def test_report_removes_pupil_wide_tip_tilt_and_focus(tmp_path, capsys):
     assert cmf["ttf"]["ratio_to_cog"] == pytest.approx(1.0, abs=1e-6)
     assert cog["ttf"]["mean_euclid"] < cog["mean_euclid"]          # its own modes go too
     assert cog["ttf"]["mean_euclid"] > 0.8 * cog["mean_euclid"]    # not much else
-    assert "tip, tilt and focus removed" in report.format_report(res)
+    text = report.format_report(res)
+    assert "tip, tilt and focus removed" in text
+    # by radius too: raw, cmf's focus grows outward; removed, cmf's rings are cog's
+    raw, clean = cmf["by_radius"], cmf["ttf"]["by_radius"]
+    assert len(clean) == len(raw) >= 2 and raw[-1]["mean_euclid"] > raw[0]["mean_euclid"] + 0.1
+    assert all(a["mean_euclid"] < 0.3 * b["mean_euclid"] for a, b in zip(clean, raw))
+    for a, b in zip(clean, cog["ttf"]["by_radius"]):
+        assert a["n"] == b["n"] and a["mean_euclid"] == pytest.approx(b["mean_euclid"], abs=1e-6)
+    assert "the same with the pupil-wide tip, tilt and focus removed" in text
 
 
 # -- CRB ------------------------------------------------------------------------------------------

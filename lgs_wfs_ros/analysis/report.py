@@ -224,7 +224,8 @@ def analyse(data: BagData, crb: bool = True, image_model=None) -> dict:
         _ratios_to_crb(out["algorithms"], errs, out["crb"], crb_frames)
         out["_crb_frames"] = crb_frames
     if data.sensor is not None and r_m is not None and len(r_m) >= 4:
-        _ttf_removed(out["algorithms"], errs, data.sensor, mas, out.get("crb"), crb_frames)
+        _ttf_removed(out["algorithms"], errs, data.sensor, mas, out.get("crb"), crb_frames,
+                     r_m, edges)
     out["_series"] = series
     out["_errors"] = errs
     return out
@@ -280,10 +281,12 @@ def _ratios_to_crb(algs: dict, errs: dict, crb: dict, crb_frames) -> None:
         v["ratio_to_crb_basis"] = "all frames vs the CRB's sample"
 
 
-def _ttf_removed(algs: dict, errs: dict, sensor, mas, crb, crb_frames) -> None:
+def _ttf_removed(algs: dict, errs: dict, sensor, mas, crb, crb_frames, r_m=None,
+                 edges=None) -> None:
     """Each algorithm's numbers with the pupil-wide tip, tilt and focus removed from the
     error (``v["ttf"]``: mean |err|, MAE, and the ratios to CoG and to the CRB on the same
-    frames, against the raw bound: 3 modes of thousands of slopes change it by < 0.1 %)."""
+    frames, against the raw bound: 3 modes of thousands of slopes change it by < 0.1 %;
+    with ``edges``, its mean |err| by ring of ``r_m (n,)``, metres, as ``by_radius``)."""
     q = metrics.ttf_modes(geometry.layout(sensor).centre_xy_m)   # the valid cells, in order
     clean = {lb: (st, metrics.remove_ttf(err, q)) for lb, (st, err) in errs.items()}
     tmp = {}
@@ -297,6 +300,8 @@ def _ttf_removed(algs: dict, errs: dict, sensor, mas, crb, crb_frames) -> None:
     for lb, v in algs.items():
         v["ttf"] = {k: tmp[lb].get(k) for k in ("mean_euclid", "mae", "mean_euclid_mas",
                                                  "ratio_to_cog", "ratio_to_crb")}
+        if edges is not None:
+            v["ttf"]["by_radius"] = metrics.by_radius(clean[lb][1], r_m, edges)
 
 
 def _crb_block(data, r_m, edges, mas, image_model=None):
@@ -383,18 +388,29 @@ def format_report(res: dict) -> str:
         lines.append("CRB: " + crb["method"])
     first = next(iter(res["algorithms"].values()))
     if first.get("by_radius") and len(first["by_radius"]) > 1:
-        lines.append("")
-        lines.append("mean |err| (px) by subaperture radius")
-        head = f"{'r (m)':<14}" + "".join(f"{n[:11]:>12}" for n in res["algorithms"]) + \
-               (f"{'CRB':>12}" if crb.get("by_radius") else "")
-        lines.append(head)
-        for k, ring in enumerate(first["by_radius"]):
-            row = f"{ring['r_min_m']:5.2f}-{ring['r_max_m']:5.2f}   "
-            row += "".join(f"{v['by_radius'][k]['mean_euclid']:>12.4f}" for v in res["algorithms"].values())
-            if crb.get("by_radius"):
-                row += f"{crb['by_radius'][k]['mean_euclid']:>12.4f}"
-            lines.append(row)
+        lines += _radius_table(res, "mean |err| (px) by subaperture radius",
+                               lambda v: v["by_radius"])
+    if (first.get("ttf") or {}).get("by_radius") and len(first["by_radius"]) > 1:
+        lines += _radius_table(res, "the same with the pupil-wide tip, tilt and focus removed",
+                               lambda v: v["ttf"]["by_radius"])
     return "\n".join(lines)
+
+
+def _radius_table(res: dict, title: str, rings_of) -> list[str]:
+    """Lines of a table of mean |err| (px) by ring of subaperture radius: ``rings_of(v)`` an
+    algorithm's rings (as :func:`.metrics.by_radius`), the CRB's beside them."""
+    crb = res.get("crb") or {}
+    algs = res["algorithms"]
+    lines = ["", title,
+             f"{'r (m)':<14}" + "".join(f"{n[:11]:>12}" for n in algs) +
+             (f"{'CRB':>12}" if crb.get("by_radius") else "")]
+    for k, ring in enumerate(rings_of(next(iter(algs.values())))):
+        row = f"{ring['r_min_m']:5.2f}-{ring['r_max_m']:5.2f}   "
+        row += "".join(f"{rings_of(v)[k]['mean_euclid']:>12.4f}" for v in algs.values())
+        if crb.get("by_radius"):
+            row += f"{crb['by_radius'][k]['mean_euclid']:>12.4f}"
+        lines.append(row)
+    return lines
 
 
 def public(res: dict) -> dict:

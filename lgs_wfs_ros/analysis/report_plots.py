@@ -145,7 +145,9 @@ def plot_ratios(res: dict, path: Path) -> str | None:
 
 
 def plot_by_radius(res: dict, path: Path) -> str | None:
-    """Mean |error| per ring of subaperture distance from the launch (full pupil)."""
+    """Mean |error| per ring of subaperture distance from the launch (full pupil): raw
+    (solid) and, where the report has it, with the pupil-wide tip, tilt and focus removed
+    (dotted, same colour)."""
     import matplotlib.pyplot as plt
     first = next(iter(res["algorithms"].values()))
     if not first.get("by_radius") or len(first["by_radius"]) < 2:
@@ -154,6 +156,10 @@ def plot_by_radius(res: dict, path: Path) -> str | None:
     for k, (name, v) in enumerate(res["algorithms"].items()):
         mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in v["by_radius"]]
         ax.plot(mid, [r["mean_euclid"] for r in v["by_radius"]], "o-", color=f"C{k}", label=name)
+        ttf = (v.get("ttf") or {}).get("by_radius")
+        if ttf:
+            ax.plot(mid, [r["mean_euclid"] for r in ttf], "o:", color=f"C{k}", mfc="none",
+                    label=f"{name}, tip, tilt, focus removed")
     crb = res.get("crb") or {}
     if crb.get("by_radius"):
         mid = [(r["r_min_m"] + r["r_max_m"]) / 2 for r in crb["by_radius"]]
