@@ -129,11 +129,15 @@ def test_only_plain_integer_frames_take_the_kernel():
     assert kernels.fits(ro, s.frame_shape)
 
 
-def _simulated(detector, frames=3):
+def _simulated(detector, frames=3, truths=False):
+    """``(sensor, frames)`` of the simulator on SMALL, and with ``truths`` their true
+    slopes ``(frames, n, 2)`` px."""
     from lgs_wfs_ros.optics.simulator import Simulator
     sensor = SMALL.replace(detector=detector)
     sim = Simulator(sensor)
-    return sensor, [sim.next().frame.copy() for _ in range(frames)]
+    got = [sim.next() for _ in range(frames)]
+    out = sensor, [f.frame.copy() for f in got]
+    return (*out, np.array([f.truth for f in got])) if truths else out
 
 
 @pytest.mark.parametrize("detector", ["polar", "cartesian"])
@@ -141,8 +145,9 @@ def test_corr_with_the_kernel_equals_the_fft_maps(detector, monkeypatch):
     """The compiled correlation (the map only at the 3 x 3 lags around the peak, reached
     from the CoG) gives the FFT map's peak fit; on cartesian pixels a spot elongated
     across the pixel axes makes a ridge in the map, where a few blocks (noise-made local
-    maxima) may take another maximum of the ridge."""
-    sensor, frames = _simulated(detector)
+    maxima; at the field's edge, here 1.5 % of them) may take another maximum of the
+    ridge, and those are no further from the truth than the map's largest."""
+    sensor, frames, truths = _simulated(detector, truths=True)
     fast_c = make_centroider("corr", sensor, pupil_period=2)
     slow_c = make_centroider("corr", sensor, pupil_period=2)
     fast = np.array([fast_c.centroid(f) for f in frames])
@@ -154,8 +159,52 @@ def test_corr_with_the_kernel_equals_the_fft_maps(detector, monkeypatch):
     if detector == "polar":
         assert d.max() < 1e-4
     else:
-        assert (d > 1e-4).mean() < 0.005
+        other = d > 1e-4
+        assert 0 < other.mean() < 0.03
         assert np.median(d) < 1e-5
+        err = lambda est: np.hypot(*(est - truths)[other].T).mean()      # noqa: E731
+        assert err(fast) <= 1.05 * err(slow)
+
+
+def _gauss_spot(p, shift, sigma_along, sigma_across, angle):
+    """``(p, p)`` an elliptical Gaussian at ``shift`` px (x, y) from the block centre, its
+    long axis at ``angle`` rad, sampled at the pixel centres."""
+    y, x = np.indices((p, p)) - (p - 1) / 2
+    x, y = x - shift[0], y - shift[1]
+    c, s = np.cos(angle), np.sin(angle)
+    u, v = c * x + s * y, -s * x + c * y
+    return np.exp(-0.5 * ((u / sigma_along) ** 2 + (v / sigma_across) ** 2))
+
+
+def _lag_value(img, ref, tx, ty):
+    """``sum_u img(u + t) ref(u)``, zero outside the block."""
+    p = img.shape[0]
+    pad = np.pad(img, p)
+    return float((pad[p + ty:2 * p + ty, p + tx:2 * p + tx] * ref).sum())
+
+
+@pytest.mark.parametrize("angle", [np.pi / 4, -np.pi / 4, np.pi / 6])
+def test_corr_starts_at_the_whole_lag_where_a_spot_like_its_reference_peaks(angle):
+    """The pass starts each block at the corner of the unit cell around its predicted lag
+    where the map of a spot shaped like its reference is largest (start_metric: the
+    reference's own correlation), not at the nearest whole lag, which on a spot elongated
+    across the pixel axes is often a step off (each such block then climbed)."""
+    p, rng = 16, np.random.default_rng(4)
+    ref = _gauss_spot(p, (0.0, 0.0), 2.5, 0.7, angle)
+    q = kernels.corr.start_metric(ref[None])[0]
+    hits = nearest = 0
+    shifts = rng.uniform(-1.5, 1.5, (200, 2))
+    for sx, sy in shifts:
+        img = _gauss_spot(p, (sx, sy), 2.5, 0.7, angle)
+        fx, fy = int(np.floor(sx)), int(np.floor(sy))
+        corners = [(fx + kx, fy + ky) for ky in (0, 1) for kx in (0, 1)]
+        best = max(corners, key=lambda t: _lag_value(img, ref, *t))
+        hits += kernels.corr._start_lag_impl(sx, sy, q) == best
+        nearest += (int(np.floor(sx + 0.5)), int(np.floor(sy + 0.5))) == best
+    assert hits >= 0.97 * len(shifts)
+    assert nearest <= 0.9 * len(shifts)              # what the metric is for
+    flat = kernels.corr.start_metric(np.zeros((1, p, p)))[0]
+    np.testing.assert_array_equal(flat, [1.0, 0.0, 1.0])    # no light: the nearest lag
 
 
 def test_corr_kernel_climbs_to_the_peak_from_a_wrong_start():
@@ -198,7 +247,7 @@ def test_corr_kernel_reads_its_references_at_int16_without_moving_the_peak():
     sensor, frames = _simulated("polar", 1)
     corr = make_centroider("corr", sensor)
     refs, ref_cog = corr._ref_kernel()
-    rows, spans = refs
+    rows, spans, _ = refs
     assert rows.dtype == np.int16 and np.abs(rows).max(axis=1).min() == 32767
     assert (spans[:, 1] - spans[:, 0]).mean() < 0.7 * rows.shape[1]    # polar: rows skipped
     for b in (0, 300, 700):                       # nothing non-zero outside a span

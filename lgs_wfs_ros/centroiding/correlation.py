@@ -21,12 +21,15 @@ Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~0.8-0.9 ms (1.0 
 whole per-frame part with the pupil calibration's accumulation). An integer frame with a
 fixed reference (the default pupil one), linear correlation and the 3 x 3 fits goes through
 one compiled pass instead (:func:`.kernels.corr_peak`): only the 9 lags the fit reads are
-evaluated, in one sweep over the reference, around the whole lag the CoG predicts (moved to
-the local maximum if it is not one), the reference read as int16 (one scale a block, which
-the fit does not see). Where the map has one maximum that is the map's fit (polar pixels:
-equal to 1e-4 px, the float32 sums and the int16 reference);
-where a spot elongated across the pixel axes makes a ridge with noise-made local maxima
-(0.1-0.2 % of cartesian blocks) it is the maximum nearest to the CoG's prediction.
+evaluated, in one sweep over the reference, around the whole lag next to the CoG's
+prediction where a spot like the reference would peak (the metric of the reference's own
+correlation: on a spot elongated along a pixel diagonal the nearest whole lag is often a
+step off), moved to the local maximum if it is not one, the reference read as int16 (one
+scale a block, which the fit does not see). Where the map has one maximum that is the map's
+fit (polar pixels: equal to 1e-4 px, the float32 sums and the int16 reference); where a
+spot elongated across the pixel axes makes a ridge with several local maxima (0.7 % of the
+full cartesian pupil's blocks, at the field's edge, on the simulator's frames) it is the
+one that start climbs to, no further from the truth than the map's largest.
 """
 
 from __future__ import annotations
@@ -161,7 +164,7 @@ class Correlation(Centroider):
 
     def _ref_kernel(self):
         """``(refw, ref_cog (n, 2))``: the references less the background, laid out for
-        :func:`.kernels.corr_peak` (``refw``: the ``(rows, spans)`` pair of
+        :func:`.kernels.corr_peak` (``refw``: the ``(rows, spans, metric)`` of
         :func:`.kernels.corr_rows`), and their CoGs (px from the block centre)."""
         self._ref_valid()                            # the references' validity, cached
         if getattr(self, "_kernel_version", None) != self.ref.version:
