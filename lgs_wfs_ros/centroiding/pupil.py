@@ -943,6 +943,9 @@ DIRECTION_TOL = 1e-6     # nor do the subapertures' shift directions (1 - cosine
 HATS_KEPT = 2
 _HATS: OrderedDict = OrderedDict()
 _HATS_LOCK = threading.Lock()
+#: process CPU seconds spent building shared bases (:func:`shared_hats`) so far: a benchmark
+#: that times refits takes it out of the refit that happened to build one for everyone
+HATS_BUILD_CPU_S = [0.0]
 #: sensor fields a noise-free spot of unit light does not depend on
 _NOT_OPTICS = ("photons", "read_noise_e", "background_e", "frame_rate_hz", "dtype", "r0_m",
                "r0_wavelength_m", "outer_scale_m", "wind_speed_mps", "wind_direction_deg")
@@ -960,7 +963,9 @@ def shared_hats(sensor, nodes_m: np.ndarray, build) -> tuple:
         if key in _HATS:
             _HATS.move_to_end(key)
             return _HATS[key]
+    t0 = time.process_time()
     out = tuple(build(sensor))
+    HATS_BUILD_CPU_S[0] += time.process_time() - t0
     for a in out:
         a.flags.writeable = False
     with _HATS_LOCK:
