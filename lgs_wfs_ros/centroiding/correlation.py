@@ -17,8 +17,8 @@ zero lag is at ``p/2`` (8 for 16 px) whatever the padding: ``ours = aotools - p/
 It also subtracts each image's and the reference's minimum first (``subtract_min=True``
 here) and takes ``abs`` of the inverse FFT (identical for non-negative images).
 
-Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~0.8-0.9 ms (1.0 ms the
-whole per-frame part with the pupil calibration's accumulation). An integer frame with a
+Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~0.75-0.8 ms (0.91-0.94 ms
+the whole per-frame part with the pupil calibration's accumulation, 2026-11-29). An integer frame with a
 fixed reference (the default pupil one), linear correlation and the 3 x 3 fits goes through
 one compiled pass instead (:func:`.kernels.corr_peak`): only the 9 lags the fit reads are
 evaluated, in one sweep over the reference, around the whole lag next to the CoG's
