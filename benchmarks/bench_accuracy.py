@@ -283,8 +283,9 @@ def run_case(family, det, launch, tilt, warm, scored, labels, seed=0, crb_sample
                 t = time.process_time()
                 est = c.centroid(counts)
                 dt = time.process_time() - t
-                dt -= shared[0] - built                   # a basis every estimator shares
-                basis_s += shared[0] - built
+                spent = shared[0] - built                 # a basis every estimator shares
+                dt -= spent
+                basis_s += spent
                 if ph == PHOTONS[-1]:            # first frame and refits: set-up, not per frame
                     slot = 2 if (refits(c) != before or k == 0) else 0
                     cpu[lb][slot] += dt

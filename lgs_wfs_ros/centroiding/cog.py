@@ -177,8 +177,10 @@ class TabledCoG(CoG):
     ``_set_tables(payload)``, ``_follow_tables()`` (the drift, as ``_follow_drift``) and
     ``_install(payload)``, and call :meth:`_start_tables` once built."""
 
-    #: what the frame path reads of a refit beside the tables (``PupilCalibration.reads``):
-    #: the drifted reference, to follow the drift between refits
+    #: what a background refit's thread reads after ``_prepare`` (``PupilCalibration.reads``):
+    #: the drifted reference, which ``_with_drift`` has already read (a cached value since
+    #: the drift comes with the payload; kept so that a ``_prepare`` without it stays off
+    #: the frame path)
     refit_reads = ("drift_counts",)
 
     #: what :meth:`_with_drift`'s copy made besides the drift, handed to the frame path too

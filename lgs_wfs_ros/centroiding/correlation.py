@@ -18,10 +18,10 @@ It also subtracts each image's and the reference's minimum first (``subtract_min
 here) and takes ``abs`` of the inverse FFT (identical for non-negative images).
 
 Cost: the FFT maps take ~50 ms a full frame, the compiled pass ~0.75-0.8 ms (0.91-0.94 ms
-the whole per-frame part with the pupil calibration's accumulation, 2026-11-29). An integer frame with a
-fixed reference (the default pupil one), linear correlation and the 3 x 3 fits goes through
-one compiled pass instead (:func:`.kernels.corr_peak`): only the 9 lags the fit reads are
-evaluated, in one sweep over the reference, around the whole lag next to the CoG's
+the whole per-frame part with the pupil calibration's accumulation, 2026-11-29). An integer
+frame with a fixed reference (the default pupil one), linear correlation and the 3 x 3 fits
+goes through one compiled pass instead (:func:`.kernels.corr_peak`): only the 9 lags the
+fit reads are evaluated, in one sweep over the reference, around the whole lag next to the CoG's
 prediction where a spot like the reference would peak (the metric of the reference's own
 correlation: on a spot elongated along a pixel diagonal the nearest whole lag is often a
 step off), moved to the local maximum if it is not one, the reference read as int16 (one
@@ -242,15 +242,11 @@ class Correlation(Centroider):
         if self.peak == "cog" or self.padding != 2:
             return self._map_reading(counts + self.background)
         x = self._prep(np.asarray(counts, dtype=float) + self.background)
-        ref = self._prep(np.asarray(self.ref.images, dtype=float))
-        p = self.p
-        xp = np.pad(x, ((0, 0), (1, 1), (1, 1)))
-        block = np.stack([np.einsum("nij,nij->n", xp[:, 1 + dy:1 + dy + p, 1 + dx:1 + dx + p], ref)
-                          for dy, dx in _OFFSETS], axis=1)                       # (n, 9)
+        block = kernels.lags_around_zero(x, self._prep(np.asarray(self.ref.images, dtype=float)))
         out = _vertex(block, log=self.peak == "gauss")
         far = np.flatnonzero(block.argmax(axis=1) != 4)
         if far.size:
-            big = p * self.padding
+            big = self.p * self.padding
             c = self.correlation_map(np.asarray(counts, dtype=float)[far] + self.background,
                                      rows=far)
             out[far] = _parabola_peak(c, log=self.peak == "gauss") - big / 2

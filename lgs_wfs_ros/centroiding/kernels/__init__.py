@@ -43,7 +43,7 @@ from .bins import (GRID_SLOTS, bins_shifts, block_bins, grid_bins, hyper_contrac
                    hyper_contract_moved, response_inverse)
 from .blocks import (add_counts, block_marginals, block_origins, block_rows, cog_moments, fits,
                      origins, quantize, stack_origins, stack_view)
-from .corr import CORR_PAD, corr_peak, corr_rows
+from .corr import CORR_PAD, corr_peak, corr_rows, lags_around_zero
 from .filters import (block_contract, central_differences, filter_flux, grid_filter,
                       position_filters, separable_filters)
 from .ml import ml_search
@@ -52,8 +52,8 @@ from .response import invert_response
 __all__ = ["AVAILABLE", "CORR_PAD", "GRID_SLOTS", "add_counts", "bins_shifts", "block_bins",
            "block_contract", "block_marginals", "block_origins", "block_rows",
            "central_differences", "cog_moments", "corr_peak", "corr_rows", "filter_flux", "fits",
-           "grid_bins", "grid_filter", "hyper_contract", "hyper_contract_moved",
-           "invert_response", "ml_search", "origins", "position_filters", "quantize",
+           "grid_bins", "grid_filter", "hyper_contract", "hyper_contract_moved", "invert_response",
+           "lags_around_zero", "ml_search", "origins", "position_filters", "quantize",
            "response_inverse", "separable_filters", "stack_origins", "stack_view", "warm_up"]
 
 _warm = False

@@ -287,6 +287,16 @@ def corr_rows(refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rows, spans, start_metric(refs)
 
 
+def lags_around_zero(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``(n, 9)``: the linear correlation ``sum_u x(u + t) ref(u)`` of ``x`` and ``ref``
+    (``(n, p, p)`` each, zero outside the block) at the 3 x 3 whole lags ``t`` around zero,
+    row-major (``t_y``, then ``t_x``, each -1, 0, 1), summed directly (numpy)."""
+    p = ref.shape[-1]
+    xp = np.pad(np.asarray(x, dtype=np.float64), ((0, 0), (1, 1), (1, 1)))
+    return np.stack([np.einsum("nij,nij->n", xp[:, 1 + dy:1 + dy + p, 1 + dx:1 + dx + p], ref)
+                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
+
+
 #: :func:`start_metric`: a reference with more of its light than this in its outer ring of
 #: pixels starts at the nearest lag: the field cuts such a spot, and a shift moves the cut,
 #: so the map of the shifted spot is not its reference's own correlation (started from the
@@ -305,10 +315,7 @@ def start_metric(refs: np.ndarray) -> np.ndarray:
     pass's cheaper start) where it is below 1e-9 of ``a + c`` (a separable spot's, as on
     polar pixels) and where more than :data:`START_EDGE_LIGHT` of the reference's light is
     in its outer ring of pixels."""
-    n, p, _ = refs.shape
-    pad = np.pad(np.asarray(refs, dtype=np.float64), ((0, 0), (1, 1), (1, 1)))
-    auto = np.stack([np.einsum("nij,nij->n", pad[:, 1 + dy:1 + dy + p, 1 + dx:1 + dx + p], refs)
-                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)         # (n, 9)
+    auto = lags_around_zero(refs, refs)                                    # (n, 9)
     with np.errstate(divide="ignore", invalid="ignore"):
         lg = np.log(auto)
         q = np.stack([lg[:, 4] - (lg[:, 5] + lg[:, 3]) / 2,
